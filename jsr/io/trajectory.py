@@ -1,0 +1,64 @@
+"""TUM trajectory files: ``timestamp tx ty tz qx qy qz qw`` per line, ``#`` comments.
+
+Values are written with Python's shortest round-trip float representation, so a
+trajectory read back is the one written (full precision, readable by evo and the TUM tools).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from jsr.errors import InputError
+from jsr.geometry import pose_from_tum, pose_to_tum
+from jsr.io.atomic import atomic_write_text
+
+
+def format_tum_lines(timestamps: np.ndarray, poses: np.ndarray) -> list[str]:
+    """Lines of a TUM file for ``(N,)`` timestamps and ``(N, 4, 4)`` poses."""
+    rows = pose_to_tum(np.asarray(poses, dtype=float).reshape(-1, 4, 4))
+    return [
+        " ".join(repr(float(value)) for value in (timestamp, *row))
+        for timestamp, row in zip(np.asarray(timestamps, dtype=float), rows)
+    ]
+
+
+def write_tum_trajectory(path: Path, timestamps: np.ndarray, poses: np.ndarray, header: str | None = None) -> None:
+    """Write ``(N,)`` timestamps and ``(N, 4, 4)`` poses as a TUM file, atomically."""
+    timestamps = np.asarray(timestamps, dtype=float).reshape(-1)
+    poses = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
+    if len(timestamps) != len(poses):
+        raise ValueError(f"{len(timestamps)} timestamps but {len(poses)} poses")
+    lines = []
+    if header:
+        lines += [f"# {line}" for line in header.splitlines()]
+    lines.append("# timestamp tx ty tz qx qy qz qw")
+    lines += format_tum_lines(timestamps, poses)
+    atomic_write_text(Path(path), "\n".join(lines) + "\n")
+
+
+def read_tum_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM file. Returns ``(N,)`` timestamps and ``(N, 4, 4)`` poses, in file order."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"trajectory file {path} does not exist")
+    timestamps, rows = [], []
+    for line_number, line in enumerate(path.read_text().splitlines(), start=1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        fields = text.replace(",", " ").split()
+        if len(fields) != 8:
+            raise InputError(f"{path}:{line_number}: expected 8 values 'timestamp tx ty tz qx qy qz qw'")
+        try:
+            values = [float(field) for field in fields]
+        except ValueError:
+            raise InputError(f"{path}:{line_number}: a value is not a number") from None
+        if np.linalg.norm(values[4:8]) < 1e-9:
+            raise InputError(f"{path}:{line_number}: quaternion has zero length")
+        timestamps.append(values[0])
+        rows.append(values[1:])
+    if not rows:
+        return np.zeros(0), np.zeros((0, 4, 4))
+    return np.asarray(timestamps), pose_from_tum(np.asarray(rows))
