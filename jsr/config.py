@@ -51,6 +51,28 @@ class FeaturesConfig:
 
 
 @dataclass
+class PlanesConfig:
+    """Fast plane extraction on the organized point cloud (Feng, Taguchi and Kamat 2014)."""
+
+    enabled: bool = True
+    block_size: int = 10
+    max_block_rmse_sigmas: float = 2.0
+    merge_angle_degrees: float = 8.0
+    merge_rmse_sigmas: float = 3.0
+    min_plane_pixels: int = 2000
+    refine: bool = True
+
+
+@dataclass
+class SegmentsConfig:
+    """Depth segmentation of the pixels outside planes."""
+
+    discontinuity_sigmas: float = 4.0
+    min_discontinuity: float = 0.02
+    min_segment_pixels: int = 400
+
+
+@dataclass
 class MatchingConfig:
     """Descriptor and plane matching."""
 
@@ -121,6 +143,8 @@ class Config:
     input: InputConfig = field(default_factory=InputConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     features: FeaturesConfig = field(default_factory=FeaturesConfig)
+    planes: PlanesConfig = field(default_factory=PlanesConfig)
+    segments: SegmentsConfig = field(default_factory=SegmentsConfig)
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     ransac: RansacConfig = field(default_factory=RansacConfig)
     keyframes: KeyframesConfig = field(default_factory=KeyframesConfig)
@@ -144,6 +168,14 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "noise.min_inlier_threshold": (lambda v: v > 0, "positive"),
     "features.max_keypoints": (lambda v: v >= 0, "at least 0 (0 keeps all)"),
     "features.depth_window": (lambda v: v >= 0, "at least 0"),
+    "planes.block_size": (lambda v: v >= 3, "at least 3"),
+    "planes.max_block_rmse_sigmas": (lambda v: v > 0, "positive"),
+    "planes.merge_angle_degrees": (lambda v: 0 < v < 90, "in (0, 90)"),
+    "planes.merge_rmse_sigmas": (lambda v: v > 0, "positive"),
+    "planes.min_plane_pixels": (lambda v: v >= 1, "at least 1"),
+    "segments.discontinuity_sigmas": (lambda v: v > 0, "positive"),
+    "segments.min_discontinuity": (lambda v: v > 0, "positive"),
+    "segments.min_segment_pixels": (lambda v: v >= 1, "at least 1"),
     "matching.ratio_test": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "matching.recent_keyframes": (lambda v: v >= 1, "at least 1"),
     "ransac.min_inlier_ratio": (lambda v: 0 < v <= 1, "in (0, 1]"),

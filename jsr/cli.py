@@ -1,0 +1,336 @@
+"""The ``jsr`` command line: the only place that prints, and the only place that exits.
+
+Every command is a thin shell around a library function (named in its docstring) so
+that anything done here can also be scripted from Python.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Callable, List, Optional
+
+import typer
+from rich.console import Console
+from rich.logging import RichHandler
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+from jsr import __version__
+from jsr.errors import JsrError
+
+app = typer.Typer(
+    name="jsr",
+    help="Joint reconstruction of a static scene and rigidly moving objects from RGB-D sequences.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode="rich",
+)
+console = Console(stderr=True, highlight=False)
+logger = logging.getLogger("jsr")
+
+EXIT_NOT_IMPLEMENTED = 3
+EXIT_INTERRUPTED = 130
+
+
+def _configure_logging(verbose: int, quiet: bool) -> None:
+    level = logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
+    root = logging.getLogger("jsr")
+    root.handlers.clear()
+    handler = RichHandler(console=console, show_time=False, show_path=False, markup=False)
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    root.addHandler(handler)
+    root.setLevel(level)
+    root.propagate = False
+
+
+def _fail(message: str, code: int = 2) -> None:
+    console.print(f"[bold red]error:[/] {message}", soft_wrap=True)
+    raise typer.Exit(code)
+
+
+def _user_errors(command: Callable) -> Callable:
+    """Turn a :class:`JsrError` into one line on stderr and a non-zero exit code."""
+
+    @functools.wraps(command)
+    def wrapper(*args, **kwargs):
+        try:
+            return command(*args, **kwargs)
+        except JsrError as error:
+            _fail(str(error), error.exit_code)
+        except KeyboardInterrupt:
+            console.print("[yellow]interrupted[/]")
+            raise typer.Exit(EXIT_INTERRUPTED)
+
+    return wrapper
+
+
+def _version_callback(value: bool) -> None:
+    if value:
+        typer.echo(f"jsr {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main_options(
+    version: bool = typer.Option(
+        False, "--version", callback=_version_callback, is_eager=True, help="Print the version and exit."
+    ),
+) -> None:
+    """Joint reconstruction of a static scene and rigidly moving objects from RGB-D sequences."""
+
+
+def _progress(quiet: bool, unit: str = "frames") -> Progress:
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[rate]}"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=console,
+        disable=quiet,
+        transient=False,
+    )
+
+
+def _print_json(data: dict) -> None:
+    """Machine-readable output goes to stdout, alone on one line."""
+    from jsr.io.writers import to_json_text
+
+    sys.stdout.write(json.dumps(json.loads(to_json_text(data))) + "\n")
+    sys.stdout.flush()
+
+
+SEQUENCE_HELP = "Sequence folder: TUM RGB-D layout (rgb.txt, depth.txt) or a set of colour/depth image pairs."
+
+
+@app.command(
+    epilog="Examples:\n\n  jsr reconstruct sample_data --out results/\n\n"
+    "  jsr reconstruct seq/ --out runs/a --set ransac.min_inlier_ratio=0.5 --max-frames 200 -q --json"
+)
+@_user_errors
+def reconstruct(
+    sequence: Path = typer.Argument(..., help=SEQUENCE_HELP, show_default=False),
+    out: Path = typer.Option(..., "--out", "-o", help="Results folder (created; must be new or empty)."),
+    config_file: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config overriding defaults."),
+    overrides: List[str] = typer.Option([], "--set", help="Override one key: section.key=value (repeatable)."),
+    camera: Optional[Path] = typer.Option(None, "--camera", help="camera.yaml to use instead of SEQ/camera.yaml."),
+    preset: Optional[str] = typer.Option(
+        None, "--preset", help="Named intrinsics: tum-fr1, tum-fr2, tum-fr3, icl-nuim, bonn, primesense."
+    ),
+    start: int = typer.Option(0, "--start", help="First frame to use (index into the associated frames)."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Use at most this many frames."),
+    stride: int = typer.Option(1, "--stride", help="Use every STRIDE-th frame."),
+    save_masks: bool = typer.Option(False, "--save-masks", help="Write masks/<frame>.png (0 static, K object K)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace the results already in --out."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar or table; errors only."),
+    json_summary: bool = typer.Option(False, "--json", help="Print a one-line JSON summary on stdout."),
+    verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="More log output (-v info, -vv debug)."),
+) -> None:
+    """Reconstruct the static scene and every moving object of a sequence."""
+    from jsr.config import config_to_yaml, load_config
+    from jsr.io.atomic import atomic_write_text
+    from jsr.io.dataset import check_first_frame, open_sequence
+    from jsr.io.run_folder import prepare_output_folder
+
+    _configure_logging(verbose, quiet)
+    config = load_config(config_file, overrides)
+    if save_masks:
+        config.output.save_masks = True
+    data = open_sequence(
+        sequence,
+        camera_file=camera,
+        preset=preset,
+        max_time_difference=config.input.max_time_difference,
+        start=start,
+        max_frames=max_frames,
+        stride=stride,
+        min_depth=config.input.min_depth,
+        max_depth=config.input.max_depth,
+    )
+    check_first_frame(data)
+    out_dir = prepare_output_folder(out, overwrite)
+    atomic_write_text(out_dir / "config.yaml", config_to_yaml(config))
+    message = (
+        f"{sequence}: {len(data)} frames validated and config.yaml written to {out_dir}, "
+        "but reconstruction itself is not implemented yet (static mapping is the next issue)"
+    )
+    if json_summary:
+        _print_json({"status": "not_implemented", "frames": len(data), "out": str(out_dir)})
+    _fail(message, EXIT_NOT_IMPLEMENTED)
+
+
+@app.command(
+    epilog="Examples:\n\n  jsr synth out/seq --frames 60 --objects 1 --motion jump\n\n"
+    "  jsr synth out/two --objects 2 --motion smooth --simultaneous --width 320 --height 240 --seed 3"
+)
+@_user_errors
+def synth(
+    out: Path = typer.Argument(..., help="Folder to write the sequence into (new or empty)."),
+    frames: int = typer.Option(60, "--frames", help="Number of frames."),
+    objects: int = typer.Option(1, "--objects", help="Number of rigid moving objects (0: static scene)."),
+    motion: str = typer.Option("jump", "--motion", help="Object motion: jump, smooth or static."),
+    simultaneous: bool = typer.Option(False, "--simultaneous", help="Move all objects in the same frames."),
+    width: int = typer.Option(640, "--width", help="Image width in pixels."),
+    height: int = typer.Option(480, "--height", help="Image height in pixels."),
+    noise: bool = typer.Option(True, "--noise/--no-noise", help="Kinect-like depth noise sigma_Z = 1.425e-3 Z^2."),
+    dropout: float = typer.Option(0.02, "--dropout", help="Fraction of depth pixels dropped at random."),
+    image_format: str = typer.Option("png", "--format", help="Colour image format: png or jpg."),
+    seed: int = typer.Option(0, "--seed", help="Random seed; the same seed gives the same files."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a sequence already in OUT."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+    json_summary: bool = typer.Option(False, "--json", help="Print a one-line JSON summary on stdout."),
+) -> None:
+    """Write a synthetic RGB-D sequence with exact ground truth (camera, objects, labels)."""
+    from jsr.synth import SynthOptions, generate_sequence
+
+    _configure_logging(0, quiet)
+    options = SynthOptions(
+        frames=frames,
+        objects=objects,
+        motion=motion,
+        simultaneous=simultaneous,
+        width=width,
+        height=height,
+        depth_noise=noise,
+        dropout=dropout,
+        seed=seed,
+        image_format=image_format,
+    )
+    started = time.perf_counter()
+    with _progress(quiet) as progress:
+        task = progress.add_task("synth", total=frames, rate="")
+
+        def report(done: int, total: int) -> None:
+            elapsed = time.perf_counter() - started
+            progress.update(task, completed=done, total=total, rate=f"{done / max(elapsed, 1e-9):.1f} fps")
+
+        summary = generate_sequence(out, options, overwrite=overwrite, progress=report)
+    if json_summary:
+        _print_json(summary)
+    if not quiet:
+        console.print(f"wrote {frames} frames with {objects} object(s) to {out}")
+
+
+@app.command(epilog="Example:\n\n  jsr evaluate results/ sample_data/")
+@_user_errors
+def evaluate(
+    results: Path = typer.Argument(..., help="Results folder of 'jsr reconstruct'."),
+    sequence: Path = typer.Argument(..., help="The sequence folder, with groundtruth.txt."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No tables; still writes metrics.json."),
+    json_summary: bool = typer.Option(False, "--json", help="Print the metrics as one line of JSON on stdout."),
+) -> None:
+    """Compare a results folder with ground truth; writes RESULTS/metrics.json."""
+    from jsr.evaluate import evaluate_run, write_metrics
+
+    _configure_logging(0, quiet)
+    metrics = evaluate_run(results, sequence)
+    path = write_metrics(results, metrics)
+    if json_summary:
+        _print_json(metrics)
+    if not quiet:
+        _print_metrics(metrics)
+        console.print(f"metrics written to {path}")
+
+
+def _print_metrics(metrics: dict) -> None:
+    camera = metrics.get("camera") or {}
+    table = Table(title="Camera")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    ate, rpe = camera.get("ate") or {}, camera.get("rpe") or {}
+    for label, value, unit in (
+        ("ATE RMSE", ate.get("rmse"), "cm"),
+        ("ATE median", ate.get("median"), "cm"),
+        ("ATE max", ate.get("max"), "cm"),
+        ("RPE translation RMSE", rpe.get("translation_rmse"), "cm"),
+        ("RPE rotation RMSE", rpe.get("rotation_rmse"), "deg"),
+    ):
+        if value is not None:
+            shown = value * 100.0 if unit == "cm" else value
+            table.add_row(label, f"{shown:.3f} {unit}")
+    for key in ("frames_evaluated", "frames_without_estimate"):
+        if key in camera:
+            table.add_row(key.replace("_", " "), str(camera[key]))
+    console.print(table)
+    objects = metrics.get("objects") or {}
+    matches = objects.get("matches") or []
+    if matches:
+        table = Table(title="Objects")
+        for column in ("estimated", "true", "frames", "t RMSE cm", "t median cm", "R RMSE deg", "tracked share"):
+            table.add_column(column, justify="right")
+        for match in matches:
+            table.add_row(
+                str(match.get("estimated_id")),
+                str(match.get("true_id")),
+                str(match.get("frames")),
+                f"{match.get('translation_rmse_cm', float('nan')):.2f}",
+                f"{match.get('translation_median_cm', float('nan')):.2f}",
+                f"{match.get('rotation_rmse_deg', float('nan')):.2f}",
+                f"{match.get('tracked_share', float('nan')):.2f}",
+            )
+        console.print(table)
+    masks = metrics.get("masks")
+    if masks:
+        console.print(
+            f"masks: precision {masks.get('precision', float('nan')):.3f}, "
+            f"recall {masks.get('recall', float('nan')):.3f} over {masks.get('frames', 0)} frames"
+        )
+
+
+@app.command(epilog="Example:\n\n  jsr plot results/ --groundtruth sample_data/groundtruth.txt")
+@_user_errors
+def plot(
+    results: Path = typer.Argument(..., help="Results folder of 'jsr reconstruct'."),
+    groundtruth: Optional[Path] = typer.Option(None, "--groundtruth", help="TUM ground truth to draw beside."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Folder for the PNGs (default RESULTS/plots)."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing."),
+) -> None:
+    """Draw the paper's Figure 7 (keyframes and landmarks per map over frames) and the trajectory."""
+    from jsr.export.plots import plot_landmark_counts, plot_trajectory
+
+    _configure_logging(0, quiet)
+    out_dir = out or Path(results) / "plots"
+    written = [plot_landmark_counts(Path(results) / "landmarks.csv", out_dir / "landmarks.png")]
+    if (Path(results) / "camera.tum").is_file():
+        written.append(plot_trajectory(Path(results) / "camera.tum", out_dir / "trajectory.png", groundtruth))
+    if not quiet:
+        for path in written:
+            console.print(f"wrote {path}")
+
+
+@app.command("export-object", epilog="Examples:\n\n  jsr export-object results/ 1 --out box.ply\n\n"
+             "  jsr export-object results/ 1 --out box_world.ply --kind cloud --world --timestamp 1000.5")
+@_user_errors
+def export_object_command(
+    results: Path = typer.Argument(..., help="Results folder of 'jsr reconstruct'."),
+    object_id: int = typer.Argument(..., help="Object number K (objects/object_K)."),
+    out: Path = typer.Option(..., "--out", "-o", help="PLY file to write."),
+    kind: str = typer.Option("mesh", "--kind", help="mesh, cloud or landmarks."),
+    world: bool = typer.Option(False, "--world", help="Place the model in the world frame (first camera)."),
+    timestamp: Optional[float] = typer.Option(None, "--timestamp", help="With --world: pose at this time."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUT if it exists."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing."),
+) -> None:
+    """Export the model of one reconstructed object as PLY, in its own frame or in the world."""
+    from jsr.export.objects import export_object
+
+    _configure_logging(0, quiet)
+    written = export_object(results, object_id, out, kind=kind, in_world=world, timestamp=timestamp, overwrite=overwrite)
+    if not quiet:
+        console.print(f"wrote {written['kind']} of object {object_id} ({written['frame']} frame) to {out}")
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()
+
+
+if __name__ == "__main__":
+    main()

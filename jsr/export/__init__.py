@@ -1,0 +1,1 @@
+"""Products made from a finished results folder: plots and exported object models."""

@@ -1,0 +1,131 @@
+"""The command line: every bad input gives one clear line and a non-zero exit code."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from jsr import __version__
+from jsr.cli import EXIT_NOT_IMPLEMENTED, app
+from tests.helpers import colour_paths, depth_paths, write_tiny_tum
+
+runner = CliRunner()
+
+
+def run(*args):
+    result = runner.invoke(app, [str(a) for a in args])
+    return result
+
+
+def assert_one_line_error(result, fragment):
+    assert result.exit_code != 0, result.output
+    assert not isinstance(result.exception, Exception) or isinstance(result.exception, SystemExit), result.exception
+    text = result.output.strip()
+    assert "Traceback" not in text
+    assert fragment in text, text
+    assert text.startswith("error:"), text
+
+
+def test_version():
+    result = run("--version")
+    assert result.exit_code == 0 and __version__ in result.output
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "synth", "evaluate", "plot", "export-object"])
+def test_help_has_examples(command):
+    result = run(command, "--help")
+    assert result.exit_code == 0
+    assert "Example" in result.output
+
+
+def test_reconstruct_validates_and_writes_config_only(tmp_path):
+    seq = write_tiny_tum(tmp_path / "seq")
+    out = tmp_path / "out"
+    result = run("reconstruct", seq, "--out", out, "--set", "seed=5")
+    assert result.exit_code == EXIT_NOT_IMPLEMENTED
+    assert "not implemented yet" in result.output
+    assert sorted(p.name for p in out.iterdir()) == ["config.yaml"]  # no fake outputs
+    assert "seed: 5" in (out / "config.yaml").read_text()
+
+
+def make_bad_input(tmp_path, problem):
+    seq = write_tiny_tum(tmp_path / "seq")
+    args = ["reconstruct", seq, "--out", tmp_path / "out"]
+    if problem == "missing folder":
+        args[1] = tmp_path / "nowhere"
+    elif problem == "no rgb.txt or pairs":
+        (tmp_path / "empty").mkdir()
+        args[1] = tmp_path / "empty"
+    elif problem == "truncated image":
+        data = colour_paths(seq)[0].read_bytes()
+        colour_paths(seq)[0].write_bytes(data[:40])
+    elif problem == "not an image":
+        colour_paths(seq)[0].write_text("hello")
+    elif problem == "depth size":
+        cv2.imwrite(str(depth_paths(seq)[0]), np.full((10, 10), 5000, np.uint16))
+    elif problem == "zero depth":
+        for path in depth_paths(seq):
+            cv2.imwrite(str(path), np.zeros((24, 32), np.uint16))
+    elif problem == "config typo":
+        args += ["--set", "ransac.min_matchs=3"]
+    elif problem == "config file typo":
+        (tmp_path / "c.yaml").write_text("ransac:\n  inlier_ratio: 0.3\n")
+        args += ["--config", tmp_path / "c.yaml"]
+    elif problem == "existing results":
+        (tmp_path / "out").mkdir()
+        (tmp_path / "out" / "summary.json").write_text("{}")
+    elif problem == "wrong resolution":
+        (seq / "camera.yaml").write_text("fx: 30\nfy: 30\ncx: 16\ncy: 12\nwidth: 640\nheight: 480\n")
+    elif problem == "bad camera file":
+        args += ["--camera", tmp_path / "nocam.yaml"]
+    elif problem == "bad stride":
+        args += ["--stride", "0"]
+    return args
+
+
+BAD_INPUTS = {
+    "missing folder": "does not exist",
+    "no rgb.txt or pairs": "neither rgb.txt nor",
+    "truncated image": "unreadable or truncated",
+    "not an image": "unreadable or truncated",
+    "depth size": "register depth to colour",
+    "zero depth": "no valid depth",
+    "config typo": "unknown config key 'ransac.min_matchs'",
+    "config file typo": "unknown config key 'ransac.inlier_ratio'",
+    "existing results": "already holds results; pass --overwrite",
+    "wrong resolution": "camera calibration is 640x480",
+    "bad camera file": "does not exist",
+    "bad stride": "--stride",
+}
+
+
+@pytest.mark.parametrize("problem", sorted(BAD_INPUTS))
+def test_bad_input_gives_one_line(tmp_path, problem):
+    result = run(*make_bad_input(tmp_path, problem))
+    assert_one_line_error(result, BAD_INPUTS[problem])
+    assert len(result.output.strip().splitlines()) <= 2  # one message (rich may wrap a long line once)
+
+
+def test_overwrite_replaces_results(tmp_path):
+    seq = write_tiny_tum(tmp_path / "seq")
+    out = tmp_path / "out"
+    run("reconstruct", seq, "--out", out)
+    result = run("reconstruct", seq, "--out", out, "--overwrite", "--set", "seed=9")
+    assert result.exit_code == EXIT_NOT_IMPLEMENTED
+    assert "seed: 9" in (out / "config.yaml").read_text()
+
+
+def test_json_summary_is_machine_readable(tmp_path):
+    seq = write_tiny_tum(tmp_path / "seq")
+    result = runner.invoke(app, ["reconstruct", str(seq), "--out", str(tmp_path / "o"), "--json", "-q"])
+    first_line = result.stdout.strip().splitlines()[0]
+    assert json.loads(first_line)["frames"] == 4
+
+
+def test_export_object_and_plot_errors(tmp_path):
+    (tmp_path / "res").mkdir()
+    assert_one_line_error(run("export-object", tmp_path / "res", 1, "--out", tmp_path / "o.ply"), "has no object 1")
+    assert_one_line_error(run("plot", tmp_path / "res"), "landmarks.csv does not exist")
+    assert_one_line_error(run("evaluate", tmp_path / "res", tmp_path / "res"), "")
