@@ -26,6 +26,10 @@ def atomic_path(path: Path) -> Iterator[Path]:
     handle, temporary_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
     os.close(handle)
     temporary = Path(temporary_name)
+    # mkstemp makes owner-only files; results should get the usual permissions (umask).
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(temporary, 0o666 & ~umask)
     try:
         yield temporary
         with open(temporary, "rb+") as stream:
