@@ -46,7 +46,10 @@ class FeaturesConfig:
     max_keypoints: int = 1500
     contrast_threshold: float = 0.04
     edge_threshold: float = 10.0
+    half_resolution: bool = False
     depth_window: int = 2
+    depth_spread_sigmas: float = 6.0
+    min_depth_spread: float = 0.02
     undistort: bool = True
 
 
@@ -59,8 +62,12 @@ class PlanesConfig:
     max_block_rmse_sigmas: float = 2.0
     merge_angle_degrees: float = 8.0
     merge_rmse_sigmas: float = 3.0
+    angle_noise_sigmas: float = 3.0
     min_plane_pixels: int = 2000
+    depth_jump_sigmas: float = 6.0
+    min_depth_jump: float = 0.02
     refine: bool = True
+    refine_distance_sigmas: float = 3.0
 
 
 @dataclass
@@ -80,6 +87,8 @@ class MatchingConfig:
     recent_keyframes: int = 5
     plane_angle_degrees: float = 10.0
     plane_distance: float = 0.05
+    guided_radius_px: float = 15.0
+    max_descriptor_distance: float = 0.7
 
 
 @dataclass
@@ -90,6 +99,11 @@ class RansacConfig:
     min_matches: int = 10
     max_iterations: int = 1000
     confidence: float = 0.999
+    plane_inlier_angle_degrees: float = 5.0
+    plane_inlier_distance: float = 0.05
+    batch_size: int = 64
+    sample_2d_below: int = 20
+    refine_rounds: int = 3
 
 
 @dataclass
@@ -124,7 +138,11 @@ class BundleAdjustmentConfig:
     every_keyframes: int = 5
     window_keyframes: int = 10
     max_iterations: int = 50
-    huber_threshold: float = 0.02
+    huber_sigmas: float = 2.0
+    asynchronous: bool = True
+    pixel_sigma: float = 1.0
+    plane_normal_sigma: float = 0.01
+    plane_offset_sigma: float = 0.01
 
 
 @dataclass
@@ -168,20 +186,33 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "noise.min_inlier_threshold": (lambda v: v > 0, "positive"),
     "features.max_keypoints": (lambda v: v >= 0, "at least 0 (0 keeps all)"),
     "features.depth_window": (lambda v: v >= 0, "at least 0"),
+    "features.depth_spread_sigmas": (lambda v: v > 0, "positive"),
+    "features.min_depth_spread": (lambda v: v > 0, "positive"),
     "planes.block_size": (lambda v: v >= 3, "at least 3"),
     "planes.max_block_rmse_sigmas": (lambda v: v > 0, "positive"),
     "planes.merge_angle_degrees": (lambda v: 0 < v < 90, "in (0, 90)"),
     "planes.merge_rmse_sigmas": (lambda v: v > 0, "positive"),
+    "planes.angle_noise_sigmas": (lambda v: v >= 0, "at least 0"),
     "planes.min_plane_pixels": (lambda v: v >= 1, "at least 1"),
+    "planes.depth_jump_sigmas": (lambda v: v > 0, "positive"),
+    "planes.min_depth_jump": (lambda v: v > 0, "positive"),
+    "planes.refine_distance_sigmas": (lambda v: v > 0, "positive"),
     "segments.discontinuity_sigmas": (lambda v: v > 0, "positive"),
     "segments.min_discontinuity": (lambda v: v > 0, "positive"),
     "segments.min_segment_pixels": (lambda v: v >= 1, "at least 1"),
     "matching.ratio_test": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "matching.recent_keyframes": (lambda v: v >= 1, "at least 1"),
+    "matching.guided_radius_px": (lambda v: v > 0, "positive"),
+    "matching.max_descriptor_distance": (lambda v: 0 < v <= 2, "in (0, 2]"),
     "ransac.min_inlier_ratio": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "ransac.min_matches": (lambda v: v >= 3, "at least 3"),
     "ransac.max_iterations": (lambda v: v >= 1, "at least 1"),
     "ransac.confidence": (lambda v: 0 < v < 1, "in (0, 1)"),
+    "ransac.plane_inlier_angle_degrees": (lambda v: 0 < v < 90, "in (0, 90)"),
+    "ransac.plane_inlier_distance": (lambda v: v > 0, "positive"),
+    "ransac.batch_size": (lambda v: v >= 1, "at least 1"),
+    "ransac.sample_2d_below": (lambda v: v >= 3, "at least 3"),
+    "ransac.refine_rounds": (lambda v: v >= 0, "at least 0 (0 disables refinement)"),
     "keyframes.translation": (lambda v: v >= 0, "at least 0"),
     "keyframes.rotation_degrees": (lambda v: v >= 0, "at least 0"),
     "detection.segment_outlier_ratio": (lambda v: 0 < v <= 1, "in (0, 1]"),
@@ -190,6 +221,10 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "bundle_adjustment.every_keyframes": (lambda v: v >= 1, "at least 1"),
     "bundle_adjustment.window_keyframes": (lambda v: v >= 2, "at least 2"),
     "bundle_adjustment.max_iterations": (lambda v: v >= 1, "at least 1"),
+    "bundle_adjustment.huber_sigmas": (lambda v: v > 0, "positive"),
+    "bundle_adjustment.pixel_sigma": (lambda v: v > 0, "positive"),
+    "bundle_adjustment.plane_normal_sigma": (lambda v: v > 0, "positive"),
+    "bundle_adjustment.plane_offset_sigma": (lambda v: v > 0, "positive"),
     "output.mesh_voxel_size": (lambda v: v > 0, "positive"),
 }
 

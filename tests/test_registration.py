@@ -1,0 +1,313 @@
+"""Mixed point/plane RANSAC registration on synthetic correspondences with known poses."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from jsr.config import NoiseConfig, RansacConfig
+from jsr.pipeline import registration
+from jsr.pipeline.registration import Correspondences, register
+
+FX = FY = 525.0
+CX, CY = 319.5, 239.5
+PIXEL_SIGMA = 0.5
+SIGMA_Z = 1.425e-3  # Kinect: sigma_Z = c Z^2
+
+
+def _pose(rng: np.random.Generator) -> np.ndarray:
+    axis = rng.normal(size=3)
+    transform = np.eye(4)
+    transform[:3, :3] = Rotation.from_rotvec(axis / np.linalg.norm(axis) * rng.uniform(0.1, 0.6)).as_matrix()
+    transform[:3, 3] = rng.uniform(-0.5, 0.5, 3)
+    return transform
+
+
+def _camera_points(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Points seen by a 640x480 camera, 0.8 to 4 m deep."""
+    u, v, z = rng.uniform(0, 640, n), rng.uniform(0, 480, n), rng.uniform(0.8, 4.0, n)
+    return np.column_stack([(u - CX) / FX * z, (v - CY) / FY * z, z])
+
+
+def _observe_pixels(rng: np.random.Generator, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    z = points[:, 2]
+    u = FX * points[:, 0] / z + CX + rng.normal(0.0, PIXEL_SIGMA, len(z))
+    v = FY * points[:, 1] / z + CY + rng.normal(0.0, PIXEL_SIGMA, len(z))
+    return u, v
+
+
+def _measure_3d(rng: np.random.Generator, points: np.ndarray) -> np.ndarray:
+    """Kinect-like measurement: pixel noise and axial depth noise sigma_Z = c Z^2."""
+    u, v = _observe_pixels(rng, points)
+    z = points[:, 2] + rng.normal(0.0, 1.0, len(points)) * SIGMA_Z * points[:, 2] ** 2
+    return np.column_stack([(u - CX) / FX * z, (v - CY) / FY * z, z])
+
+
+def _measure_bearings(rng: np.random.Generator, points: np.ndarray) -> np.ndarray:
+    u, v = _observe_pixels(rng, points)
+    rays = np.column_stack([(u - CX) / FX, (v - CY) / FY, np.ones(len(u))])
+    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+
+def _to_map(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return points @ transform[:3, :3].T + transform[:3, 3]
+
+
+def _scene(
+    seed: int,
+    n3d: int = 0,
+    n2d: int = 0,
+    n_planes: int = 0,
+    outlier_ratio: float = 0.5,
+    plane_outliers: int = 0,
+) -> tuple[Correspondences, np.ndarray, dict[str, np.ndarray]]:
+    """Correspondences under a random pose; a fraction of each kind matched to wrong landmarks."""
+    rng = np.random.default_rng(seed)
+    truth = _pose(rng)
+    fields: dict[str, np.ndarray] = {}
+    outliers: dict[str, np.ndarray] = {}
+    if n3d:
+        points = _camera_points(rng, n3d)
+        landmarks = _to_map(truth, points)
+        wrong = rng.choice(n3d, int(round(outlier_ratio * n3d)), replace=False)
+        landmarks[wrong] = _to_map(truth, _camera_points(rng, len(wrong)))
+        measured = _measure_3d(rng, points)
+        fields.update(frame_points=measured, map_points=landmarks, point_depths=measured[:, 2])
+        outliers["point3d"] = wrong
+    if n2d:
+        points = _camera_points(rng, n2d)
+        landmarks = _to_map(truth, points)
+        wrong = rng.choice(n2d, int(round(outlier_ratio * n2d)), replace=False)
+        landmarks[wrong] = _to_map(truth, _camera_points(rng, len(wrong)))
+        fields.update(frame_bearings=_measure_bearings(rng, points), map_points_2d=landmarks)
+        outliers["point2d"] = wrong
+    if n_planes:
+        normals = rng.normal(size=(n_planes, 3))
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        offsets = rng.uniform(0.5, 3.0, n_planes)
+        map_normals = normals @ truth[:3, :3].T
+        map_offsets = offsets - map_normals @ truth[:3, 3]
+        noisy = normals + rng.normal(0.0, 0.003, normals.shape)
+        noisy /= np.linalg.norm(noisy, axis=1, keepdims=True)
+        frame_planes = np.column_stack([noisy, offsets + rng.normal(0.0, 0.005, n_planes)])
+        map_planes = np.column_stack([map_normals, map_offsets])
+        map_planes[:plane_outliers] = map_planes[np.roll(np.arange(plane_outliers), 1)]
+        fields.update(frame_planes=frame_planes, map_planes=map_planes)
+        outliers["plane"] = np.arange(plane_outliers)
+    return Correspondences(**fields), truth, outliers
+
+
+def _errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    delta = np.linalg.inv(truth) @ estimate
+    angle = np.degrees(np.arccos(np.clip((np.trace(delta[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    return float(np.linalg.norm(delta[:3, 3])), float(angle)
+
+
+def _check_pose(result, truth: np.ndarray) -> None:
+    assert result.success, result.reason
+    assert result.reason == ""
+    translation_error, rotation_error = _errors(result.transformation, truth)
+    assert translation_error < 0.005, translation_error
+    assert rotation_error < 0.3, rotation_error
+
+
+def _check_outliers_rejected(mask: np.ndarray, wrong: np.ndarray, min_recall: float = 0.95) -> None:
+    """Wrong matches are outliers; nearly all right ones are inliers."""
+    assert not mask[wrong].any()
+    right = np.setdiff1d(np.arange(len(mask)), wrong)
+    assert mask[right].mean() >= min_recall
+
+
+RANSAC = RansacConfig()
+NOISE = NoiseConfig()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_3d_points_with_half_outliers(seed: int) -> None:
+    corr, truth, wrong = _scene(seed, n3d=400)
+    result = register(corr, RANSAC, NOISE, np.random.default_rng(seed))
+    _check_pose(result, truth)
+    _check_outliers_rejected(result.inliers_point3d, wrong["point3d"])
+    assert result.num_matches == 400
+    assert 0.45 <= result.fitness <= 0.55
+    assert 0.0 < result.rmse < 0.03
+    assert result.iterations <= RANSAC.max_iterations
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_2d_points_only_with_half_outliers(seed: int) -> None:
+    corr, truth, wrong = _scene(seed, n2d=400)
+    result = register(corr, RANSAC, NOISE, np.random.default_rng(seed))
+    _check_pose(result, truth)
+    _check_outliers_rejected(result.inliers_point2d, wrong["point2d"])
+    assert result.rmse == 0.0  # no 3D pairs
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_mixed_points_and_planes_with_half_outliers(seed: int) -> None:
+    corr, truth, wrong = _scene(seed, n3d=200, n2d=60, n_planes=6, plane_outliers=2)
+    result = register(corr, RANSAC, NOISE, np.random.default_rng(seed))
+    _check_pose(result, truth)
+    _check_outliers_rejected(result.inliers_point3d, wrong["point3d"])
+    _check_outliers_rejected(result.inliers_point2d, wrong["point2d"], min_recall=0.9)
+    np.testing.assert_array_equal(result.inliers_plane, [False, False, True, True, True, True])
+    assert result.num_matches == 266
+
+
+def test_scarce_3d_points_use_2d_matches() -> None:
+    """Eight 3D matches (too few to sample from alone) and many 2D matches."""
+    corr, truth, _ = _scene(5, n3d=8, n2d=300, outlier_ratio=0.3)
+    result = register(corr, RANSAC, NOISE, np.random.default_rng(5))
+    _check_pose(result, truth)
+
+
+def test_planes_and_few_points() -> None:
+    """Hypotheses from plane mixes: three good planes and a handful of 3D points."""
+    corr, truth, _ = _scene(6, n3d=12, n_planes=3, outlier_ratio=0.25)
+    result = register(corr, RANSAC, NOISE, np.random.default_rng(6))
+    assert result.success, result.reason
+    translation_error, rotation_error = _errors(result.transformation, truth)
+    assert translation_error < 0.02 and rotation_error < 1.0
+    assert result.inliers_plane.all()
+
+
+def test_too_few_matches_fails_without_ransac() -> None:
+    corr, _, _ = _scene(0, n3d=6, n_planes=3, outlier_ratio=0.0)  # 9 matches < 10
+    result = register(corr, RANSAC, NOISE, np.random.default_rng(0))
+    assert not result.success
+    assert "too few matches" in result.reason and "min_matches" in result.reason
+    assert result.iterations == 0
+    assert result.num_matches == 9 and result.num_inliers == 0
+    np.testing.assert_array_equal(result.transformation, np.eye(4))
+    assert result.inliers_point3d.shape == (6,) and result.inliers_plane.shape == (3,)
+
+
+def test_planes_count_as_matches() -> None:
+    corr, _, _ = _scene(0, n3d=7, n_planes=3, outlier_ratio=0.0)  # 10 matches
+    result = register(corr, RANSAC, NOISE, np.random.default_rng(0))
+    assert result.num_matches == 10
+    assert result.success, result.reason
+
+
+def test_low_inlier_ratio_fails() -> None:
+    corr, truth, wrong = _scene(3, n3d=300, outlier_ratio=0.7)  # 30% inliers < 0.4
+    result = register(corr, RANSAC, NOISE, np.random.default_rng(3))
+    assert not result.success
+    assert "inlier ratio" in result.reason and "min_inlier_ratio" in result.reason
+    assert result.fitness < RANSAC.min_inlier_ratio
+    # the pose itself is still found; only the success rule rejects it
+    assert _errors(result.transformation, truth)[0] < 0.01
+    # with a lower required ratio the same data registers
+    lenient = dataclasses.replace(RANSAC, min_inlier_ratio=0.25)
+    assert register(corr, lenient, NOISE, np.random.default_rng(3)).success
+
+
+def test_pure_outliers_fail() -> None:
+    corr, _, _ = _scene(4, n3d=100, outlier_ratio=1.0)
+    result = register(corr, RANSAC, NOISE, np.random.default_rng(4))
+    assert not result.success
+    assert result.reason
+    assert result.iterations == RANSAC.max_iterations
+
+
+def test_same_seed_same_result() -> None:
+    corr, _, _ = _scene(8, n3d=150, n2d=40, n_planes=4)
+    first = register(corr, RANSAC, NOISE, np.random.default_rng(123))
+    second = register(corr, RANSAC, NOISE, np.random.default_rng(123))
+    np.testing.assert_array_equal(first.transformation, second.transformation)
+    np.testing.assert_array_equal(first.inliers_point3d, second.inliers_point3d)
+    np.testing.assert_array_equal(first.inliers_point2d, second.inliers_point2d)
+    np.testing.assert_array_equal(first.inliers_plane, second.inliers_plane)
+    assert first.iterations == second.iterations
+
+
+def test_different_seeds_sample_differently() -> None:
+    """The rng drives the sampling: without refinement the best sample differs by seed."""
+    corr, _, _ = _scene(8, n3d=150)
+    raw = dataclasses.replace(RANSAC, refine_rounds=0)
+    first = register(corr, raw, NOISE, np.random.default_rng(1))
+    second = register(corr, raw, NOISE, np.random.default_rng(2))
+    assert not np.array_equal(first.transformation, second.transformation)
+
+
+def test_initial_guess_is_scored_first() -> None:
+    corr, truth, _ = _scene(9, n3d=200, outlier_ratio=0.2)
+    # a single sampled hypothesis cannot be relied on; the initial guess carries the result
+    one_sample = dataclasses.replace(RANSAC, max_iterations=1, refine_rounds=0)
+    guided = register(corr, one_sample, NOISE, np.random.default_rng(0), initial_guess=truth)
+    assert guided.success
+    assert _errors(guided.transformation, truth)[0] < 1e-12
+    # a good guess lets adaptive stopping end after a few samples (0.8^3 -> ~10 samples)
+    result = register(corr, RANSAC, NOISE, np.random.default_rng(0), initial_guess=truth)
+    _check_pose(result, truth)
+    assert result.iterations < 20
+
+
+def test_bad_initial_guess_is_overruled() -> None:
+    corr, truth, _ = _scene(10, n3d=300)
+    wrong_guess = truth.copy()
+    wrong_guess[:3, 3] += [0.5, 0.0, 0.0]
+    result = register(corr, RANSAC, NOISE, np.random.default_rng(0), initial_guess=wrong_guess)
+    _check_pose(result, truth)
+
+
+def test_initial_guess_returned_when_too_few_matches() -> None:
+    corr, truth, _ = _scene(0, n3d=4, outlier_ratio=0.0)
+    result = register(corr, RANSAC, NOISE, np.random.default_rng(0), initial_guess=truth)
+    assert not result.success
+    np.testing.assert_array_equal(result.transformation, truth)
+
+
+def test_inlier_functions_agree_with_result() -> None:
+    corr, _, _ = _scene(11, n3d=120, n2d=50, n_planes=5, plane_outliers=1)
+    result = register(corr, RANSAC, NOISE, np.random.default_rng(0))
+    pose = result.transformation
+    np.testing.assert_array_equal(registration.point_inliers(pose, corr, NOISE), result.inliers_point3d)
+    np.testing.assert_array_equal(registration.point2d_inliers(pose, corr, NOISE), result.inliers_point2d)
+    np.testing.assert_array_equal(registration.plane_inliers(pose, corr, RANSAC), result.inliers_plane)
+    evaluated = registration.evaluate_pose(pose, corr, RANSAC, NOISE)
+    assert evaluated.num_inliers == result.num_inliers
+    assert evaluated.success == result.success
+
+
+def test_depth_dependent_threshold() -> None:
+    """A 3 cm error is an inlier at 4 m (3 sigma_Z = 6.8 cm) but not at 1 m (1 cm floor)."""
+    frame = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 4.0]])
+    corr = Correspondences(frame_points=frame, map_points=frame + [0.03, 0.0, 0.0])
+    np.testing.assert_array_equal(registration.point_inliers(np.eye(4), corr, NOISE), [False, True])
+
+
+def test_2d_landmark_behind_the_camera_is_an_outlier() -> None:
+    bearing = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    landmarks = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, -2.0]])
+    corr = Correspondences(frame_bearings=bearing, map_points_2d=landmarks)
+    np.testing.assert_array_equal(registration.point2d_inliers(np.eye(4), corr, NOISE), [True, False])
+
+
+def test_ids_are_carried_through_subset() -> None:
+    corr, _, _ = _scene(12, n3d=20, n_planes=2)
+    corr.landmark_ids = np.arange(100, 120)
+    corr.frame_point_ids = np.arange(20)
+    corr.frame_plane_ids = np.array([5, 6])
+    part = corr.subset(point3d=np.arange(20) % 2 == 0, plane=[1])
+    np.testing.assert_array_equal(part.landmark_ids, np.arange(100, 120, 2))
+    np.testing.assert_array_equal(part.frame_plane_ids, [6])
+    assert part.num_point3d == 10 and part.num_plane == 1
+    assert len(part.point_depths) == 10
+
+
+def test_mismatched_lengths_are_rejected() -> None:
+    with pytest.raises(ValueError):
+        Correspondences(frame_points=np.zeros((3, 3)), map_points=np.zeros((2, 3)))
+
+
+def test_nan_rows_do_not_break_registration() -> None:
+    corr, truth, _ = _scene(13, n3d=200)
+    corr.frame_points[:10] = np.nan  # e.g. keypoints whose depth lookup failed
+    corr.point_depths[:10] = np.nan
+    result = register(corr, RANSAC, NOISE, np.random.default_rng(0))
+    _check_pose(result, truth)
+    assert not result.inliers_point3d[:10].any()
