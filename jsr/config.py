@@ -59,6 +59,7 @@ class PlanesConfig:
 
     enabled: bool = True
     block_size: int = 10
+    max_block_missing: float = 0.1
     max_block_rmse_sigmas: float = 2.0
     merge_angle_degrees: float = 8.0
     merge_rmse_sigmas: float = 3.0
@@ -189,6 +190,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "features.depth_spread_sigmas": (lambda v: v > 0, "positive"),
     "features.min_depth_spread": (lambda v: v > 0, "positive"),
     "planes.block_size": (lambda v: v >= 3, "at least 3"),
+    "planes.max_block_missing": (lambda v: 0 <= v < 1, "in [0, 1)"),
     "planes.max_block_rmse_sigmas": (lambda v: v > 0, "positive"),
     "planes.merge_angle_degrees": (lambda v: 0 < v < 90, "in (0, 90)"),
     "planes.merge_rmse_sigmas": (lambda v: v > 0, "positive"),
