@@ -34,7 +34,6 @@ app = typer.Typer(
 console = Console(stderr=True, highlight=False)
 logger = logging.getLogger("jsr")
 
-EXIT_NOT_IMPLEMENTED = 3
 EXIT_INTERRUPTED = 130
 
 
@@ -134,8 +133,7 @@ def reconstruct(
     verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="More log output (-v info, -vv debug)."),
 ) -> None:
     """Reconstruct the static scene and every moving object of a sequence."""
-    from jsr.config import config_to_yaml, load_config
-    from jsr.io.atomic import atomic_write_text
+    from jsr.config import load_config
     from jsr.io.dataset import check_first_frame, open_sequence
     from jsr.io.run_folder import prepare_output_folder
 
@@ -156,14 +154,49 @@ def reconstruct(
     )
     check_first_frame(data)
     out_dir = prepare_output_folder(out, overwrite)
-    atomic_write_text(out_dir / "config.yaml", config_to_yaml(config))
-    message = (
-        f"{sequence}: {len(data)} frames validated and config.yaml written to {out_dir}, "
-        "but reconstruction itself is not implemented yet (static mapping is the next issue)"
-    )
+
+    from jsr.pipeline.run import run_reconstruction
+
+    started = time.perf_counter()
+    with _progress(quiet) as progress:
+        task = progress.add_task("reconstruct", total=len(data), rate="")
+
+        def on_frame(report) -> None:
+            done = report.frame_index + 1
+            elapsed = time.perf_counter() - started
+            maps = report.maps
+            static = maps.get("static")
+            objects = sum(1 for name in maps if name != "static")
+            state = "" if report.tracked else " [yellow]lost[/]"
+            progress.update(
+                task,
+                completed=done,
+                rate=f"{done / max(elapsed, 1e-9):.1f} fps | static kf {static.keyframes if static else 0} "
+                f"pts {static.point_landmarks if static else 0} | objects {objects}{state}",
+            )
+
+        try:
+            summary = run_reconstruction(data, config, out_dir, on_frame=on_frame)
+        except KeyboardInterrupt:
+            console.print(f"[yellow]interrupted[/]: results of the frames done are in {out_dir}")
+            raise typer.Exit(EXIT_INTERRUPTED)
     if json_summary:
-        _print_json({"status": "not_implemented", "frames": len(data), "out": str(out_dir)})
-    _fail(message, EXIT_NOT_IMPLEMENTED)
+        _print_json(summary)
+    if not quiet:
+        _print_run_summary(summary, out_dir)
+
+
+def _print_run_summary(summary: dict, out_dir: Path) -> None:
+    table = Table(title=f"jsr reconstruct: {summary['frames_processed']} frames, {summary['fps']:.2f} fps")
+    for column in ("map", "keyframes", "point landmarks", "plane landmarks"):
+        table.add_column(column, justify="right" if column != "map" else "left")
+    for name, counts in summary["maps"].items():
+        table.add_row(name, str(counts["keyframes"]), str(counts["point_landmarks"]), str(counts["plane_landmarks"]))
+    console.print(table)
+    console.print(
+        f"tracked {summary['frames_tracked']} of {summary['frames_processed']} frames "
+        f"({summary['frames_lost']} lost, {summary['relocalisations']} relocalisations); results in {out_dir}"
+    )
 
 
 @app.command(

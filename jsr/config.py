@@ -37,6 +37,7 @@ class NoiseConfig:
     sigma_z_coefficient: float = 1.425e-3
     inlier_sigmas: float = 3.0
     min_inlier_threshold: float = 0.01
+    pixel_sigma: float = 1.0
 
 
 @dataclass
@@ -44,9 +45,9 @@ class FeaturesConfig:
     """SIFT point measurements."""
 
     max_keypoints: int = 1500
-    contrast_threshold: float = 0.04
+    contrast_threshold: float = 0.02
     edge_threshold: float = 10.0
-    half_resolution: bool = False
+    half_resolution: bool = True
     depth_window: int = 2
     depth_spread_sigmas: float = 6.0
     min_depth_spread: float = 0.02
@@ -105,6 +106,7 @@ class RansacConfig:
     batch_size: int = 64
     sample_2d_below: int = 20
     refine_rounds: int = 3
+    refinement: str = "image"
 
 
 @dataclass
@@ -185,6 +187,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "noise.sigma_z_coefficient": (lambda v: v >= 0, "at least 0"),
     "noise.inlier_sigmas": (lambda v: v > 0, "positive"),
     "noise.min_inlier_threshold": (lambda v: v > 0, "positive"),
+    "noise.pixel_sigma": (lambda v: v > 0, "positive"),
     "features.max_keypoints": (lambda v: v >= 0, "at least 0 (0 keeps all)"),
     "features.depth_window": (lambda v: v >= 0, "at least 0"),
     "features.depth_spread_sigmas": (lambda v: v > 0, "positive"),
@@ -228,6 +231,11 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "bundle_adjustment.plane_normal_sigma": (lambda v: v > 0, "positive"),
     "bundle_adjustment.plane_offset_sigma": (lambda v: v > 0, "positive"),
     "output.mesh_voxel_size": (lambda v: v > 0, "positive"),
+}
+
+
+_CHOICES: dict[str, tuple[str, ...]] = {
+    "ransac.refinement": ("image", "euclidean"),
 }
 
 
@@ -275,6 +283,8 @@ def _apply_mapping(target: Any, values: dict, prefix: str) -> None:
             _apply_mapping(current, value, f"{key}.")
             continue
         coerced = _coerce(key, value, hints[name])
+        if key in _CHOICES and coerced not in _CHOICES[key]:
+            raise ConfigError(f"config key '{key}' must be one of {', '.join(_CHOICES[key])}, got {value!r}")
         constraint = _CONSTRAINTS.get(key)
         if constraint is not None and not constraint[0](coerced):
             raise ConfigError(f"config key '{key}' must be {constraint[1]}, got {value!r}")

@@ -8,7 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from jsr import __version__
-from jsr.cli import EXIT_NOT_IMPLEMENTED, app
+from jsr.cli import app
 from tests.helpers import colour_paths, depth_paths, write_tiny_tum
 
 runner = CliRunner()
@@ -40,14 +40,16 @@ def test_help_has_examples(command):
     assert "Example" in result.output
 
 
-def test_reconstruct_validates_and_writes_config_only(tmp_path):
-    seq = write_tiny_tum(tmp_path / "seq")
+def test_reconstruct_writes_results(tmp_path, synth_sequence):
     out = tmp_path / "out"
-    result = run("reconstruct", seq, "--out", out, "--set", "seed=5")
-    assert result.exit_code == EXIT_NOT_IMPLEMENTED
-    assert "not implemented yet" in result.output
-    assert sorted(p.name for p in out.iterdir()) == ["config.yaml"]  # no fake outputs
+    result = run("reconstruct", synth_sequence, "--out", out, "--set", "seed=5", "--max-frames", "6", "-q")
+    assert result.exit_code == 0, result.output
+    for name in ("config.yaml", "summary.json", "camera.tum", "landmarks.csv", "timings.csv",
+                 "static/keyframes.tum", "static/landmarks.ply", "static/mesh.ply"):
+        assert (out / name).is_file(), name
     assert "seed: 5" in (out / "config.yaml").read_text()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "complete" and summary["frames_processed"] == 6
 
 
 def make_bad_input(tmp_path, problem):
@@ -111,17 +113,19 @@ def test_bad_input_gives_one_line(tmp_path, problem):
 def test_overwrite_replaces_results(tmp_path):
     seq = write_tiny_tum(tmp_path / "seq")
     out = tmp_path / "out"
-    run("reconstruct", seq, "--out", out)
-    result = run("reconstruct", seq, "--out", out, "--overwrite", "--set", "seed=9")
-    assert result.exit_code == EXIT_NOT_IMPLEMENTED
+    run("reconstruct", seq, "--out", out, "-q")
+    result = run("reconstruct", seq, "--out", out, "--overwrite", "--set", "seed=9", "-q")
+    assert result.exit_code == 0, result.output
     assert "seed: 9" in (out / "config.yaml").read_text()
 
 
 def test_json_summary_is_machine_readable(tmp_path):
     seq = write_tiny_tum(tmp_path / "seq")
     result = runner.invoke(app, ["reconstruct", str(seq), "--out", str(tmp_path / "o"), "--json", "-q"])
-    first_line = result.stdout.strip().splitlines()[0]
-    assert json.loads(first_line)["frames"] == 4
+    lines = result.stdout.strip().splitlines()
+    assert len(lines) == 1, result.stdout  # nothing else on stdout
+    summary = json.loads(lines[0])
+    assert summary["frames_processed"] == 4 and summary["status"] == "complete"
 
 
 def test_export_object_and_plot_errors(tmp_path):

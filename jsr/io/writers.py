@@ -15,19 +15,22 @@ from typing import Iterable, Sequence
 import numpy as np
 import yaml
 
-from jsr.io.atomic import atomic_path, atomic_write_text
+from jsr.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
 
 
-def _open3d():
+def open3d_quiet():
     # Imported lazily: Open3D takes about a second to load and most commands never need it.
     import open3d
 
+    # Open3D's C++ warnings go to stdout, where they would corrupt --json output; jsr reports
+    # failures itself.
+    open3d.utility.set_verbosity_level(open3d.utility.VerbosityLevel.Error)
     return open3d
 
 
 def make_point_cloud(points: np.ndarray, colors: np.ndarray | None = None, normals: np.ndarray | None = None):
     """An ``open3d.geometry.PointCloud`` from ``(N, 3)`` points, colours in [0, 1] or uint8, normals."""
-    o3d = _open3d()
+    o3d = open3d_quiet()
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64).reshape(-1, 3)))
     if colors is not None:
         colors = np.asarray(colors)
@@ -46,9 +49,19 @@ def write_point_cloud_ply(
     write_geometry_ply(path, make_point_cloud(points, colors, normals))
 
 
+EMPTY_PLY = b"ply\nformat binary_little_endian 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+
+
 def write_geometry_ply(path: Path, geometry) -> None:
-    """Write an Open3D ``PointCloud`` or ``TriangleMesh`` as binary PLY, atomically."""
-    o3d = _open3d()
+    """Write an Open3D ``PointCloud`` or ``TriangleMesh`` as binary PLY, atomically.
+
+    An empty geometry gives a valid PLY with no vertices (Open3D refuses to write one).
+    """
+    o3d = open3d_quiet()
+    vertices = geometry.vertices if isinstance(geometry, o3d.geometry.TriangleMesh) else geometry.points
+    if len(vertices) == 0:
+        atomic_write_bytes(Path(path), EMPTY_PLY)
+        return
     with atomic_path(Path(path)) as temporary:
         if isinstance(geometry, o3d.geometry.TriangleMesh):
             written = o3d.io.write_triangle_mesh(str(temporary), geometry, write_ascii=False)
@@ -60,7 +73,7 @@ def write_geometry_ply(path: Path, geometry) -> None:
 
 def read_geometry_ply(path: Path):
     """Read a PLY file as a ``TriangleMesh`` if it has faces, else as a ``PointCloud``."""
-    o3d = _open3d()
+    o3d = open3d_quiet()
     mesh = o3d.io.read_triangle_mesh(str(path))
     if len(mesh.triangles) > 0:
         return mesh

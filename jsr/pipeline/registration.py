@@ -37,12 +37,14 @@ alternate for up to ``ransac.refine_rounds`` rounds.
 from __future__ import annotations
 
 import logging
+import functools
 import math
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from jsr.config import NoiseConfig, RansacConfig
 from jsr.geometry import inlier_threshold
@@ -73,6 +75,8 @@ class Correspondences:
     ``frame_planes`` ``(C, 4)`` ``[n, d]`` in the camera and ``map_planes`` ``(C, 4)`` in the map.
     The optional id arrays (frame measurement indices, landmark ids) are not used here and are
     carried through :meth:`subset` unchanged, so that callers can map inliers back.
+    ``focal_length`` (pixels), when given, switches the final least squares to image-space
+    residuals (see :func:`_refine_pose_image_space`).
     """
 
     frame_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
@@ -88,6 +92,7 @@ class Correspondences:
     landmark_ids_2d: np.ndarray | None = None
     frame_plane_ids: np.ndarray | None = None
     landmark_plane_ids: np.ndarray | None = None
+    focal_length: float | None = None
 
     def __post_init__(self) -> None:
         self.frame_points = _array(self.frame_points, 3)
@@ -164,6 +169,7 @@ class Correspondences:
             landmark_ids_2d=pick(self.landmark_ids_2d, point2d),
             frame_plane_ids=pick(self.frame_plane_ids, plane),
             landmark_plane_ids=pick(self.landmark_plane_ids, plane),
+            focal_length=self.focal_length,
         )
 
 
@@ -557,6 +563,62 @@ def _refine_pose(
     return refined
 
 
+def _refine_pose_image_space(
+    problem: _Problem, transform: np.ndarray, masks: list[np.ndarray], focal_length: float
+) -> np.ndarray | None:
+    """Least squares on the inliers with residuals shaped like the sensor's noise.
+
+    A structured-light depth camera measures the image position of a point far better than its
+    depth: about ``pixel_sigma`` pixels across the ray against ``sigma_Z = c Z^2`` along it. An
+    isotropic 3D distance weighs both by ``sigma_Z`` and throws away most of the lateral
+    information, which lets far-away scenes jitter. Here each 3D-3D pair gives two
+    reprojection residuals (landmark projected with the pose vs the measured pixel, in units of
+    ``pixel_sigma``) and one depth residual (in units of the combined depth noise of measurement
+    and landmark); each 2D-3D pair gives two reprojection residuals; planes as in
+    :func:`_refine_pose`. The cost is minimised with a Huber loss (scale 2 sigma).
+    """
+    m3, m2, mp = masks
+    p, q = problem.p[m3], problem.q[m3]
+    bearings, x2 = problem.bearings[m2], problem.x2[m2]
+    pc, pm = problem.planes_c[mp], problem.planes_m[mp]
+    if 3 * len(p) + 2 * len(x2) + 4 * len(pc) < 6:
+        return None
+    r0, t0 = transform[:3, :3], transform[:3, 3]
+    angular_sigma = problem.noise.pixel_sigma / focal_length
+    measured_uv = p[:, :2] / p[:, 2:3]
+    bearing_uv = bearings[:, :2] / bearings[:, 2:3]
+    depth_sigma = np.sqrt(2.0) * np.maximum(
+        problem.noise.sigma_z_coefficient * p[:, 2] ** 2, problem.noise.min_inlier_threshold / problem.noise.inlier_sigmas
+    )
+    sa, sd = problem.angle_threshold, problem.distance_threshold
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        rotation = Rotation.from_rotvec(x[:3]).as_matrix() @ r0
+        translation = t0 + x[3:]
+        landmarks = (q - translation) @ rotation  # landmarks in the camera frame
+        z = np.maximum(landmarks[:, 2], 1e-6)
+        parts = [
+            ((landmarks[:, :2] / z[:, None] - measured_uv) / angular_sigma).ravel(),
+            (landmarks[:, 2] - p[:, 2]) / depth_sigma,
+        ]
+        landmarks_2d = (x2 - translation) @ rotation
+        z2 = np.maximum(landmarks_2d[:, 2], 1e-6)
+        parts.append(((landmarks_2d[:, :2] / z2[:, None] - bearing_uv) / angular_sigma).ravel())
+        normals = pc[:, :3] @ rotation.T
+        parts.append(((normals - pm[:, :3]) / sa).ravel())
+        parts.append((pc[:, 3] - normals @ translation - pm[:, 3]) / sd)
+        return np.concatenate(parts)
+
+    solution = least_squares(residuals, np.zeros(6), method="trf", loss="huber", f_scale=2.0, max_nfev=50,
+                             x_scale=np.array([1e-3, 1e-3, 1e-3, 1e-2, 1e-2, 1e-2]))
+    if not np.all(np.isfinite(solution.x)):
+        return None
+    refined = np.eye(4)
+    refined[:3, :3] = Rotation.from_rotvec(solution.x[:3]).as_matrix() @ r0
+    refined[:3, 3] = t0 + solution.x[3:]
+    return refined
+
+
 # --------------------------------------------------------------------------------------
 # Registration
 # --------------------------------------------------------------------------------------
@@ -696,8 +758,11 @@ def register(
 
     transform = best_transform
     cost, _, masks = problem.score_one(transform)
+    refine = _refine_pose if corr.focal_length is None else functools.partial(
+        _refine_pose_image_space, focal_length=corr.focal_length
+    )
     for _ in range(ransac_cfg.refine_rounds):
-        refined = _refine_pose(problem, transform, masks)
+        refined = refine(problem, transform, masks)
         if refined is None:
             break
         new_cost, _, new_masks = problem.score_one(refined)

@@ -1,0 +1,155 @@
+"""SIFT point measurements: 3D points (keypoints with depth) and 2D points (bearings only).
+
+A keypoint's depth is looked up robustly in the raw depth image, which is registered to the
+raw (distorted) colour image: the median of the valid depths in a ``(2r+1)^2`` window around
+the rounded keypoint pixel (``r = depth_window``). The lookup fails, and the keypoint becomes a
+2D point, when fewer than half of the window has depth or when the window straddles a depth
+discontinuity: some valid depth differs from the median by more than
+``max(min_depth_spread, depth_spread_sigmas * sigma_Z(median))``. This keeps keypoints on
+object silhouettes from taking the depth of the background.
+
+The 3D point back-projects the undistorted keypoint (when the camera has distortion and
+``undistort`` is on) with that depth; ``sigma_z = noise.sigma_z_coefficient * Z^2``.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+
+from jsr.config import FeaturesConfig, NoiseConfig
+from jsr.io.camera import CameraIntrinsics
+from jsr.pipeline.measurements import PointMeasurements
+
+logger = logging.getLogger(__name__)
+
+
+def create_sift(cfg: FeaturesConfig) -> cv2.SIFT:
+    """An OpenCV SIFT detector with the configured limits (reuse it across frames)."""
+    return cv2.SIFT_create(
+        nfeatures=int(cfg.max_keypoints),
+        contrastThreshold=float(cfg.contrast_threshold),
+        edgeThreshold=float(cfg.edge_threshold),
+    )
+
+
+def to_grey(color_rgb: np.ndarray) -> np.ndarray:
+    """``(H, W)`` uint8 grey image of an RGB (or already grey) image."""
+    if color_rgb.ndim == 2:
+        return color_rgb
+    return cv2.cvtColor(color_rgb, cv2.COLOR_RGB2GRAY)
+
+
+def detect_keypoints(
+    grey: np.ndarray, cfg: FeaturesConfig, sift: cv2.SIFT | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """One SIFT detect-and-describe call on a grey image.
+
+    Returns ``(pixels (N, 2) float64 raw pixel coordinates, descriptors (N, 128) float32)``.
+    With ``half_resolution`` SIFT runs on the image downsampled by 2: OpenCV's SIFT then
+    upsamples it back, so the scale space starts at the full image resolution instead of at
+    twice it (about 4x faster, without the finest-scale keypoints); coordinates are mapped
+    back to the full image.
+    """
+    if sift is None:
+        sift = create_sift(cfg)
+    scale = 1.0
+    image = grey
+    if cfg.half_resolution:
+        image = cv2.resize(grey, (grey.shape[1] // 2, grey.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        scale = grey.shape[1] / image.shape[1]
+    keypoints, descriptors = sift.detectAndCompute(image, None)
+    if not keypoints:
+        return np.zeros((0, 2)), np.zeros((0, 128), dtype=np.float32)
+    pixels = np.array([keypoint.pt for keypoint in keypoints], dtype=np.float64)
+    if scale != 1.0:
+        pixels = (pixels + 0.5) * scale - 0.5
+    return pixels, np.asarray(descriptors, dtype=np.float32)
+
+
+def lookup_depth(
+    depth: np.ndarray, pixels: np.ndarray, cfg: FeaturesConfig, noise_cfg: NoiseConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Robust depth at ``(N, 2)`` raw pixel positions; returns ``(depth (N,), valid (N,))``.
+
+    Vectorised: all windows are gathered with one fancy index into an ``(N, K)`` array and
+    sorted row-wise (invalid depths sort last), so the median of the valid values is read at
+    the middle of each row's valid part.
+    """
+    count = len(pixels)
+    if count == 0:
+        return np.zeros(0), np.zeros(0, dtype=bool)
+    height, width = depth.shape
+    radius = int(cfg.depth_window)
+    offsets = np.arange(-radius, radius + 1)
+    u = np.clip(np.rint(pixels[:, 0]).astype(np.int64), 0, width - 1)
+    v = np.clip(np.rint(pixels[:, 1]).astype(np.int64), 0, height - 1)
+    uu = np.clip(u[:, None, None] + offsets[None, None, :], 0, width - 1)
+    vv = np.clip(v[:, None, None] + offsets[None, :, None], 0, height - 1)
+    # Border pixels repeat when a window is clipped; acceptable for a robust statistic.
+    windows = depth[vv, uu].reshape(count, -1).astype(np.float64)
+    size = windows.shape[1]
+    valid_count = (windows > 0).sum(axis=1)
+    ordered = np.sort(np.where(windows > 0, windows, np.inf), axis=1)
+    low = np.clip((valid_count - 1) // 2, 0, size - 1)
+    high = np.clip(valid_count // 2, 0, size - 1)
+    median = 0.5 * (
+        np.take_along_axis(ordered, low[:, None], axis=1)[:, 0] + np.take_along_axis(ordered, high[:, None], axis=1)[:, 0]
+    )
+    enough = valid_count * 2 >= size
+    median = np.where(enough, median, 0.0)
+    smallest = ordered[:, 0]
+    largest = np.take_along_axis(ordered, np.maximum(valid_count - 1, 0)[:, None], axis=1)[:, 0]
+    limit = np.maximum(cfg.min_depth_spread, cfg.depth_spread_sigmas * noise_cfg.sigma_z_coefficient * median * median)
+    continuous = (median - smallest <= limit) & (largest - median <= limit)
+    valid = enough & continuous & (median > 0)
+    return np.where(valid, median, 0.0), valid
+
+
+def build_point_measurements(
+    pixels: np.ndarray,
+    descriptors: np.ndarray,
+    depth: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    cfg: FeaturesConfig,
+    noise_cfg: NoiseConfig,
+) -> PointMeasurements:
+    """Point measurements from raw keypoint ``pixels`` ``(N, 2)`` and their descriptors."""
+    if len(pixels) == 0:
+        return PointMeasurements.empty()
+    z, has_depth = lookup_depth(depth, pixels, cfg, noise_cfg)
+    ideal = pixels
+    if cfg.undistort and intrinsics.has_distortion:
+        ideal = intrinsics.undistort_pixels(pixels)
+    x = (ideal[:, 0] - intrinsics.cx) / intrinsics.fx
+    y = (ideal[:, 1] - intrinsics.cy) / intrinsics.fy
+    rays = np.column_stack([x, y, np.ones_like(x)])
+    bearings = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    points = np.full((len(pixels), 3), np.nan)
+    points[has_depth] = rays[has_depth] * z[has_depth, None]
+    sigma_z = np.where(has_depth, noise_cfg.sigma_z_coefficient * z * z, 0.0)
+    return PointMeasurements(
+        pixels=np.ascontiguousarray(ideal, dtype=np.float64),
+        points=points,
+        has_depth=has_depth,
+        bearings=bearings,
+        sigma_z=sigma_z,
+        descriptors=np.ascontiguousarray(descriptors, dtype=np.float32),
+    )
+
+
+def extract_point_measurements(
+    color_rgb: np.ndarray,
+    depth: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    features_cfg: FeaturesConfig,
+    noise_cfg: NoiseConfig,
+    sift: cv2.SIFT | None = None,
+) -> PointMeasurements:
+    """SIFT on the grey image, robust depth lookup, back-projection: the frame's points."""
+    pixels, descriptors = detect_keypoints(to_grey(color_rgb), features_cfg, sift)
+    measurements = build_point_measurements(pixels, descriptors, depth, intrinsics, features_cfg, noise_cfg)
+    logger.debug("%d keypoints, %d with depth", len(measurements), int(measurements.has_depth.sum()))
+    return measurements

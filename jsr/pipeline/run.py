@@ -1,0 +1,182 @@
+"""Run a whole sequence through the :class:`Reconstructor` and write the results folder.
+
+Results are flushed every ``flush_every`` frames and once more at the end, also when the
+run is interrupted (Ctrl-C) or crashes: the folder always holds valid files for the frames
+done, and ``summary.json`` says whether the run completed.
+
+Layout written (``DIR``)::
+
+    config.yaml             resolved configuration
+    summary.json            version, input, frames, fps, per-map counts, timings, status
+    camera.tum              T_w_c of every tracked frame (world = first camera frame)
+    landmarks.csv           per frame and map: keyframes, point and plane landmarks, tracked
+    timings.csv             per frame: milliseconds per stage
+    static/keyframes.tum    T_w_c of the static map's keyframes
+    static/landmarks.ply    active point landmarks of the static map (world frame)
+    static/cloud.ply, static/mesh.ply   dense model fused from the keyframes (end of run)
+"""
+
+from __future__ import annotations
+
+import logging
+import platform
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from jsr import __version__
+from jsr.config import Config, config_to_yaml
+from jsr.io.atomic import atomic_write_text
+from jsr.io.dataset import RGBDSequence
+from jsr.io.trajectory import write_tum_trajectory
+from jsr.io.writers import write_csv, write_json, write_point_cloud_ply
+from jsr.pipeline.maps import Map
+from jsr.pipeline.reconstruct import FrameReport, Reconstructor
+
+logger = logging.getLogger(__name__)
+
+LANDMARK_HEADER = ["frame", "timestamp", "map", "keyframes", "point_landmarks", "plane_landmarks", "tracked"]
+STAGE_ORDER = ["sift", "depth_lookup", "planes", "segments", "total", "matching", "registration", "map_update",
+               "frame_total"]
+
+
+def _ordered_stages(reports: list[FrameReport]) -> list[str]:
+    seen = {key for report in reports for key in report.timings_ms}
+    return [s for s in STAGE_ORDER if s in seen] + sorted(seen - set(STAGE_ORDER))
+
+
+class ResultsWriter:
+    """Writes the files of a results folder from the reconstructor's state (atomically)."""
+
+    def __init__(self, out_dir: Path, sequence: RGBDSequence, config: Config):
+        self.out_dir = Path(out_dir)
+        self.sequence = sequence
+        self.config = config
+
+    def write_config(self) -> None:
+        atomic_write_text(self.out_dir / "config.yaml", config_to_yaml(self.config))
+
+    def write_tables(self, reconstructor: Reconstructor) -> None:
+        """camera.tum, landmarks.csv, timings.csv and the sparse map files."""
+        reports = reconstructor.reports
+        tracked = [r for r in reports if r.tracked]
+        write_tum_trajectory(
+            self.out_dir / "camera.tum",
+            np.array([r.timestamp for r in tracked]),
+            np.array([r.T_w_c for r in tracked]).reshape(-1, 4, 4),
+            header="camera-to-world T_w_c of every tracked frame; world = first camera frame",
+        )
+        rows = []
+        for report in reports:
+            for name, counts in report.maps.items():
+                rows.append([report.frame_index, report.timestamp, name, counts.keyframes, counts.point_landmarks,
+                             counts.plane_landmarks, int(counts.tracked)])
+        write_csv(self.out_dir / "landmarks.csv", LANDMARK_HEADER, rows)
+        stages = _ordered_stages(reports)
+        write_csv(
+            self.out_dir / "timings.csv",
+            ["frame", "timestamp"] + [f"{stage}_ms" for stage in stages],
+            ([r.frame_index, r.timestamp] + [round(r.timings_ms.get(s, float("nan")), 3) for s in stages]
+             for r in reports),
+        )
+        for map_ in reconstructor.maps:
+            self.write_sparse_map(map_, self.out_dir / map_.name)
+
+    def write_sparse_map(self, map_: Map, folder: Path) -> None:
+        folder.mkdir(parents=True, exist_ok=True)
+        write_tum_trajectory(
+            folder / "keyframes.tum",
+            np.array([kf.timestamp for kf in map_.keyframes]),
+            map_.keyframe_poses,
+            header=f"keyframes of map '{map_.name}': T_map_cam",
+        )
+        active = map_.points.active
+        write_point_cloud_ply(folder / "landmarks.ply", map_.points.positions[active], map_.points.colors[active])
+
+    def write_summary(self, reconstructor: Reconstructor, status: str, seconds: float, error: str = "") -> dict:
+        """``summary.json``; ``seconds`` is the time spent on the frames (fps = frames / seconds)."""
+        reports = reconstructor.reports
+        stages = _ordered_stages(reports)
+        timing_summary = {}
+        for stage in stages:
+            values = np.array([r.timings_ms[stage] for r in reports if stage in r.timings_ms])
+            timing_summary[stage] = {"median_ms": float(np.median(values)), "p90_ms": float(np.percentile(values, 90))}
+        summary = {
+            "version": __version__,
+            "status": status,
+            "error": error,
+            "input": {
+                "sequence": str(self.sequence.root),
+                "kind": self.sequence.kind,
+                "frames_selected": len(self.sequence),
+                "skipped_entries": self.sequence.report.missing_files + self.sequence.report.unmatched,
+                "intrinsics": self.sequence.intrinsics.to_dict(),
+            },
+            "frames_processed": len(reports),
+            "frames_tracked": sum(r.tracked for r in reports),
+            "frames_lost": sum(not r.tracked for r in reports),
+            "relocalisations": sum(r.relocalised for r in reports),
+            "seconds": seconds,
+            "fps": len(reports) / seconds if seconds > 0 else 0.0,
+            "maps": {
+                m.name: {"keyframes": len(m.keyframes), "point_landmarks": m.points.active_count,
+                         "plane_landmarks": len(m.planes)}
+                for m in reconstructor.maps
+            },
+            "timings": timing_summary,
+            "platform": platform.platform(),
+        }
+        write_json(self.out_dir / "summary.json", summary)
+        return summary
+
+
+def run_reconstruction(
+    sequence: RGBDSequence,
+    config: Config,
+    out_dir: Path,
+    on_frame: Callable[[FrameReport], None] | None = None,
+    flush_every: int = 25,
+    dense_models: bool = True,
+) -> dict:
+    """Reconstruct ``sequence`` into ``out_dir`` (which must exist and be empty of results).
+
+    ``on_frame`` is called after every frame (progress display). Returns the summary dict
+    (also written to ``summary.json``). A KeyboardInterrupt or any exception is re-raised after
+    the results of the frames done have been written.
+    """
+    writer = ResultsWriter(out_dir, sequence, config)
+    writer.write_config()
+    reconstructor = Reconstructor(config, sequence.intrinsics)
+    started = time.perf_counter()
+    status, error = "running", ""
+    tracking_seconds = None
+    try:
+        for index in range(len(sequence)):
+            report = reconstructor.process(sequence[index])
+            if on_frame is not None:
+                on_frame(report)
+            if flush_every and (index + 1) % flush_every == 0:
+                writer.write_tables(reconstructor)
+                writer.write_summary(reconstructor, status, time.perf_counter() - started)
+        reconstructor.finish()
+        tracking_seconds = time.perf_counter() - started
+        writer.write_tables(reconstructor)
+        if dense_models:
+            from jsr.export.meshes import write_dense_models
+
+            write_dense_models(reconstructor, sequence, config, out_dir)
+        status = "complete"
+    except KeyboardInterrupt:
+        status, error = "interrupted", "interrupted by the user"
+        raise
+    except Exception as exception:  # a bug or a bad frame: keep what was done, then re-raise
+        status, error = "failed", f"{type(exception).__name__}: {exception}"
+        raise
+    finally:
+        seconds = time.perf_counter() - started if tracking_seconds is None else tracking_seconds
+        if status != "complete":
+            writer.write_tables(reconstructor)
+        summary = writer.write_summary(reconstructor, status, seconds, error)
+    return summary

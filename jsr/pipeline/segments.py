@@ -1,0 +1,224 @@
+"""Segments of a frame (Caccamo et al. 2017, Section 2.1): plane segments, then depth segments.
+
+Every extracted plane starts a segment (the plane and the point features inside it). The
+remaining valid pixels are cut into connected regions at depth discontinuities: two
+4-neighbours are apart if their depths differ by more than
+``max(min_discontinuity, discontinuity_sigmas * sigma_Z(z_near))``. Only the farther pixel
+of such a pair is cut out (so foreground objects keep their silhouette), the regions are
+``cv2.connectedComponentsWithStats`` of the remaining pixels, and the cut pixels then join
+the neighbouring segment they are continuous with. Regions smaller than
+``min_segment_pixels`` join the adjacent segment they share the longest depth-continuous
+border with, or are dropped if they have none.
+
+Segment ``i < P`` is plane ``i``; depth segments follow, largest first.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from jsr.config import NoiseConfig, SegmentsConfig
+from jsr.io.camera import CameraIntrinsics
+from jsr.pipeline.measurements import PlaneMeasurements, PointMeasurements, Segments
+from jsr.pipeline.planes import jump_mask
+
+logger = logging.getLogger(__name__)
+
+
+def build_segments(
+    planes: PlaneMeasurements,
+    depth: np.ndarray,
+    points: PointMeasurements,
+    intrinsics: CameraIntrinsics,
+    segments_cfg: SegmentsConfig,
+    noise_cfg: NoiseConfig,
+    keypoint_pixels: np.ndarray | None = None,
+) -> Segments:
+    """Plane segments plus depth-discontinuity segments of one frame.
+
+    ``depth``: ``(H, W)`` float32 metres (0 = invalid) on the raw image grid, like
+    ``planes.label_image``. Points are assigned to segments by their rounded pixel;
+    ``keypoint_pixels`` ``(N, 2)`` gives their raw (distorted) pixel positions when
+    ``points.pixels`` were undistorted; by default ``points.pixels`` are used.
+    ``intrinsics`` is accepted for symmetry with the other stages (segmentation works on the
+    raw image grid and needs no calibration).
+    """
+    depth = np.asarray(depth, dtype=np.float32)
+    height, width = depth.shape
+    plane_labels = np.asarray(planes.label_image, dtype=np.int32)
+    plane_count = len(planes)
+    coefficient = noise_cfg.sigma_z_coefficient
+    jump_h, jump_v = jump_mask(depth, coefficient, segments_cfg.discontinuity_sigmas, segments_cfg.min_discontinuity)
+
+    # Cut the farther pixel of every discontinuous pair.
+    cut = np.zeros((height, width), dtype=bool)
+    right_farther = depth[:, 1:] > depth[:, :-1]
+    cut[:, 1:] |= jump_h & right_farther
+    cut[:, :-1] |= jump_h & ~right_farther
+    down_farther = depth[1:, :] > depth[:-1, :]
+    cut[1:, :] |= jump_v & down_farther
+    cut[:-1, :] |= jump_v & ~down_farther
+    valid = depth > 0
+    free = valid & (plane_labels < 0) & ~cut
+    count, components = cv2.connectedComponents(free.view(np.uint8), connectivity=4, ltype=cv2.CV_32S)
+    labels = np.where(components > 0, components + np.int32(plane_count - 1), plane_labels)
+    total = plane_count + count - 1
+
+    # Cut pixels join the neighbour they are continuous with (two passes: cuts are 1-2 px wide).
+    pending = np.flatnonzero(valid & (labels < 0) & cut)
+    flat_labels = labels.ravel()
+    for _ in range(2):
+        if len(pending) == 0:
+            break
+        joined = _absorb_from_neighbours(flat_labels, depth.ravel(), pending, jump_h, jump_v, width)
+        pending = pending[flat_labels[pending] < 0] if joined else pending[:0]
+
+    sizes = np.bincount(flat_labels + 1, minlength=total + 1)[1:]
+    merged = _merge_small_segments(labels, sizes, jump_h, jump_v, plane_count, segments_cfg.min_segment_pixels)
+    mapping, pixel_counts = _renumber(merged, sizes, plane_count)
+    labels = mapping[labels]
+    segment_count = len(pixel_counts)
+    plane_index = np.full(segment_count, -1, dtype=np.int64)
+    plane_index[:plane_count] = np.arange(plane_count)
+    point_indices = _points_per_segment(labels, points, keypoint_pixels, segment_count)
+    logger.debug("%d segments (%d planes), %d pixels unsegmented", segment_count, plane_count, int((labels < 0).sum()))
+    return Segments(label_image=labels, plane_index=plane_index, point_indices=point_indices, pixel_counts=pixel_counts)
+
+
+def _absorb_from_neighbours(
+    flat_labels: np.ndarray,
+    flat_depth: np.ndarray,
+    pending: np.ndarray,
+    jump_h: np.ndarray,
+    jump_v: np.ndarray,
+    width: int,
+) -> bool:
+    """Give each ``pending`` pixel (flat index) the label of its depth-closest continuous 4-neighbour.
+
+    Updates ``flat_labels`` in place; returns whether any pixel got a label.
+    """
+    total = len(flat_labels)
+    rows, cols = np.divmod(pending, width)
+    height = total // width
+    best_gap = np.full(len(pending), np.inf, dtype=np.float32)
+    best_label = np.full(len(pending), -1, dtype=flat_labels.dtype)
+    jump_h_flat = jump_h.ravel()  # (H, W-1): pair (r, c)-(r, c+1) at r * (W-1) + c
+    jump_v_flat = jump_v.ravel()  # (H-1, W): pair (r, c)-(r+1, c) at r * W + c
+    for d_row, d_col in ((0, -1), (0, 1), (-1, 0), (1, 0)):
+        n_rows, n_cols = rows + d_row, cols + d_col
+        inside = (n_rows >= 0) & (n_rows < height) & (n_cols >= 0) & (n_cols < width)
+        index = np.flatnonzero(inside)
+        neighbour = n_rows[index] * width + n_cols[index]
+        if d_row == 0:
+            pair_col = np.minimum(cols[index], n_cols[index])
+            jumps = jump_h_flat[rows[index] * (width - 1) + pair_col]
+        else:
+            pair_row = np.minimum(rows[index], n_rows[index])
+            jumps = jump_v_flat[pair_row * width + cols[index]]
+        neighbour_labels = flat_labels[neighbour]
+        neighbour_depth = flat_depth[neighbour]
+        gap = np.abs(flat_depth[pending[index]] - neighbour_depth)
+        take = (neighbour_labels >= 0) & ~jumps & (neighbour_depth > 0) & (gap < best_gap[index])
+        best_gap[index[take]] = gap[take]
+        best_label[index[take]] = neighbour_labels[take]
+    found = best_label >= 0
+    flat_labels[pending[found]] = best_label[found]
+    return bool(found.any())
+
+
+def _merge_small_segments(
+    labels: np.ndarray, sizes: np.ndarray, jump_h: np.ndarray, jump_v: np.ndarray, plane_count: int, min_pixels: int
+) -> np.ndarray:
+    """Where each segment goes: itself, the segment a small one joins, or -1 (dropped).
+
+    Depth segments below ``min_pixels`` point to the neighbouring segment they share the most
+    depth-continuous 4-neighbour pairs with. Groups linked by these pointers contain at most
+    one large segment (a large segment points nowhere); a group with one takes its id, a
+    group of small segments only is kept if together it reaches ``min_pixels``, else
+    dropped. Plane segments count as large. Returns ``(S,)`` ids.
+    """
+    total = len(sizes)
+    identity = np.arange(total)
+    small = sizes < min_pixels
+    small[:plane_count] = False
+    if total == 0 or not small.any():
+        return identity
+    # Depth-continuous pairs of neighbouring pixels in different segments.
+    left, right = labels[:, :-1], labels[:, 1:]
+    up, down = labels[:-1, :], labels[1:, :]
+    border_h = (left != right) & ~jump_h & (left >= 0) & (right >= 0)
+    border_v = (up != down) & ~jump_v & (up >= 0) & (down >= 0)
+    first = np.concatenate([left[border_h], up[border_v]]).astype(np.int64)
+    second = np.concatenate([right[border_h], down[border_v]]).astype(np.int64)
+    source = np.concatenate([first, second])
+    target = np.concatenate([second, first])
+    from_small = small[source]
+    source, target = source[from_small], target[from_small]
+    pointer = identity.copy()
+    if len(source):
+        codes, contacts = np.unique(source * total + target, return_counts=True)
+        pair_source, pair_target = codes // total, codes % total
+        # The target with the most contacts per source (ties: the larger target).
+        order = np.lexsort((sizes[pair_target], contacts, pair_source))
+        last = np.ones(len(order), dtype=bool)
+        last[:-1] = pair_source[order][1:] != pair_source[order][:-1]
+        pointer[pair_source[order][last]] = pair_target[order][last]
+    linked = pointer != identity
+    graph = coo_matrix((np.ones(int(linked.sum())), (identity[linked], pointer[linked])), shape=(total, total))
+    _, group = connected_components(graph, directed=False)
+    group_size = np.bincount(group, weights=sizes, minlength=total)
+    # Id of each group: its large member if any, else its smallest member if big enough.
+    group_id = np.full(total, -1, dtype=np.int64)
+    large = ~small
+    group_id[group[large]] = identity[large]
+    orphan = group_id < 0
+    if orphan.any():
+        first_member = np.full(total, total, dtype=np.int64)
+        np.minimum.at(first_member, group, identity)
+        keep = orphan & (group_size >= min_pixels)
+        group_id[keep] = first_member[keep]
+    return group_id[group]
+
+
+def _renumber(merged: np.ndarray, sizes: np.ndarray, plane_count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Final ids: planes keep ``0..P-1``, surviving depth segments follow, largest first.
+
+    ``merged``: ``(S,)`` id each segment is merged into (-1 dropped). Returns the mapping
+    from the pre-merge labels (with -1 at index -1) to final ids, and the final pixel counts.
+    """
+    total = len(sizes)
+    kept = merged >= 0
+    final_sizes = np.bincount(merged[kept], weights=sizes[kept], minlength=max(total, plane_count)).astype(np.int64)
+    depth_ids = np.arange(plane_count, total)
+    depth_ids = depth_ids[final_sizes[depth_ids] > 0]
+    depth_ids = depth_ids[np.argsort(-final_sizes[depth_ids], kind="stable")]
+    final_id = np.full(max(total, plane_count), -1, dtype=np.int32)
+    final_id[:plane_count] = np.arange(plane_count)
+    final_id[depth_ids] = np.arange(plane_count, plane_count + len(depth_ids))
+    mapping = np.full(total + 1, -1, dtype=np.int32)  # the last entry serves label -1
+    mapping[:total] = np.where(kept, final_id[np.maximum(merged, 0)], -1)
+    counts = np.concatenate([final_sizes[:plane_count], final_sizes[depth_ids]])
+    return mapping, counts
+
+
+def _points_per_segment(
+    labels: np.ndarray, points: PointMeasurements, keypoint_pixels: np.ndarray | None, segment_count: int
+) -> list[np.ndarray]:
+    """Indices of the point measurements whose rounded pixel lies in each segment."""
+    pixels = points.pixels if keypoint_pixels is None else np.asarray(keypoint_pixels, dtype=np.float64)
+    if len(pixels) == 0 or segment_count == 0:
+        return [np.zeros(0, dtype=np.int64) for _ in range(segment_count)]
+    height, width = labels.shape
+    u = np.rint(pixels[:, 0]).astype(np.int64)
+    v = np.rint(pixels[:, 1]).astype(np.int64)
+    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    owner = np.full(len(pixels), -1, dtype=np.int64)
+    owner[inside] = labels[v[inside], u[inside]]
+    order = np.argsort(owner, kind="stable")
+    boundaries = np.searchsorted(owner[order], np.arange(segment_count + 1))
+    return [order[boundaries[i] : boundaries[i + 1]] for i in range(segment_count)]

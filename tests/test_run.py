@@ -1,0 +1,46 @@
+"""Running a whole sequence: the results folder, also after an interruption."""
+
+import json
+
+import numpy as np
+import pytest
+
+from jsr.config import load_config
+from jsr.io.dataset import open_sequence
+from jsr.io.trajectory import read_tum_trajectory
+from jsr.io.writers import read_csv
+from jsr.pipeline.run import run_reconstruction
+
+
+def test_interrupted_run_leaves_valid_results(synth_sequence, tmp_path):
+    sequence = open_sequence(synth_sequence)
+
+    def interrupt_after_five(report):
+        if report.frame_index == 4:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_reconstruction(sequence, load_config(), tmp_path, on_frame=interrupt_after_five, flush_every=0)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["status"] == "interrupted"
+    assert summary["frames_processed"] == 5
+    timestamps, poses = read_tum_trajectory(tmp_path / "camera.tum")
+    assert len(timestamps) == summary["frames_tracked"] and len(poses) == len(timestamps)
+    rows = read_csv(tmp_path / "landmarks.csv")
+    assert {int(r["frame"]) for r in rows} == set(range(5))
+    # no temporary files left behind
+    assert not [p for p in tmp_path.rglob(".*")]
+
+
+def test_complete_run_files_agree(synth_sequence, tmp_path):
+    sequence = open_sequence(synth_sequence, max_frames=8)
+    summary = run_reconstruction(sequence, load_config(), tmp_path, dense_models=False)
+    assert summary["status"] == "complete"
+    rows = read_csv(tmp_path / "landmarks.csv")
+    last = [r for r in rows if int(r["frame"]) == 7 and r["map"] == "static"][0]
+    assert int(last["keyframes"]) == summary["maps"]["static"]["keyframes"]
+    keyframe_times, keyframe_poses = read_tum_trajectory(tmp_path / "static" / "keyframes.tum")
+    assert len(keyframe_times) == summary["maps"]["static"]["keyframes"]
+    assert np.allclose(keyframe_poses[0], np.eye(4))
+    timings = read_csv(tmp_path / "timings.csv")
+    assert len(timings) == 8 and "sift_ms" in timings[0]
