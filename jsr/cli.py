@@ -251,6 +251,45 @@ def synth(
         console.print(f"wrote {frames} frames with {objects} object(s) to {out}")
 
 
+@app.command(epilog="Examples:\n\n  jsr frames sample_data --out overlays/ --stride 5\n\n"
+             "  jsr frames seq/ --out overlays/ --start 100 --max-frames 10")
+@_user_errors
+def frames(
+    sequence: Path = typer.Argument(..., help=SEQUENCE_HELP, show_default=False),
+    out: Path = typer.Option(..., "--out", "-o", help="Folder for one overlay PNG per frame."),
+    config_file: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config overriding defaults."),
+    overrides: List[str] = typer.Option([], "--set", help="Override one key: section.key=value (repeatable)."),
+    camera: Optional[Path] = typer.Option(None, "--camera", help="camera.yaml to use instead of SEQ/camera.yaml."),
+    preset: Optional[str] = typer.Option(None, "--preset", help="Named intrinsics (see 'reconstruct --help')."),
+    start: int = typer.Option(0, "--start", help="First frame to use."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Use at most this many frames."),
+    stride: int = typer.Option(1, "--stride", help="Use every STRIDE-th frame."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+) -> None:
+    """Draw what the front-end sees: keypoints (green 3D, red 2D), planes and segments per frame."""
+    from jsr.config import load_config
+    from jsr.io.dataset import open_sequence
+    from jsr.pipeline.overlays import write_frame_overlays
+
+    _configure_logging(0, quiet)
+    config = load_config(config_file, overrides)
+    data = open_sequence(sequence, camera_file=camera, preset=preset,
+                         max_time_difference=config.input.max_time_difference, start=start,
+                         max_frames=max_frames, stride=stride, min_depth=config.input.min_depth,
+                         max_depth=config.input.max_depth)
+    started = time.perf_counter()
+    with _progress(quiet) as progress:
+        task = progress.add_task("frames", total=len(data), rate="")
+
+        def report(done: int, total: int) -> None:
+            elapsed = time.perf_counter() - started
+            progress.update(task, completed=done, total=total, rate=f"{done / max(elapsed, 1e-9):.1f} fps")
+
+        written = write_frame_overlays(data, config, out, progress=report)
+    if not quiet:
+        console.print(f"wrote {len(written)} overlays to {out}")
+
+
 @app.command(epilog="Example:\n\n  jsr evaluate results/ sample_data/")
 @_user_errors
 def evaluate(

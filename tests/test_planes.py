@@ -402,3 +402,18 @@ def test_synth_planes_match_box_faces(config, synth_frames, frame_index):
     assert len(visible) >= 4, report
     assert not missed, f"faces not found within 2 deg / 1 cm: {missed}. {report}"
     assert not spurious, f"planes matching no true face: {spurious}. {report}"
+
+
+def test_pixels_beyond_the_block_grid_are_labelled(config):
+    """Image sides that are not multiples of the block size (here 64 x 47 with 10 px blocks)."""
+    intrinsics = CameraIntrinsics(100.0, 100.0, 31.5, 23.0, 64, 47)
+    v, u = np.mgrid[0:47, 0:64].astype(float)
+    # A tilted plane z = 2 + 0.1 x, i.e. depth = 2 / (1 - 0.1 (u - cx) / fx).
+    depth = (2.0 / (1.0 - 0.1 * (u - intrinsics.cx) / intrinsics.fx)).astype(np.float32)
+    result = extract_planes(depth, intrinsics, config.planes, config.noise)
+    assert len(result) == 1
+    assert np.all(result.label_image == 0)
+    assert result.point_counts[0] == 64 * 47
+    expected = np.array([0.1, 0.0, -1.0]) / np.linalg.norm([0.1, 0.0, -1.0])
+    np.testing.assert_allclose(result.normals[0], expected, atol=1e-4)
+    assert result.offsets[0] == pytest.approx(2.0 / np.linalg.norm([0.1, 0.0, -1.0]), abs=1e-4)

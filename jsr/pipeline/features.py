@@ -1,5 +1,14 @@
 """SIFT point measurements: 3D points (keypoints with depth) and 2D points (bearings only).
 
+One OpenCV SIFT call per frame on the grey image (``max_keypoints``, ``contrast_threshold``,
+``edge_threshold``). With ``half_resolution`` (the default) the image is halved first:
+OpenCV's SIFT doubles its input, so its scale space then starts at the full resolution
+instead of twice it. That is about three times faster; it loses only the finest-scale
+keypoints, and with ``contrast_threshold`` 0.02 it keeps about as many geometrically correct
+matches between nearby frames as full-resolution SIFT with OpenCV's default 0.04 (measured
+on redkitchen300: median 184 versus 212 correct 3D-3D matches between frames 8 apart, worst
+case 41 versus 30).
+
 A keypoint's depth is looked up robustly in the raw depth image, which is registered to the
 raw (distorted) colour image: the median of the valid depths in a ``(2r+1)^2`` window around
 the rounded keypoint pixel (``r = depth_window``). The lookup fails, and the keypoint becomes a

@@ -894,7 +894,10 @@ def _refine(
     dilated &= (interior < 0)[None]
     # Block-major order: the candidate rows of one block are contiguous.
     block_of, plane_of = np.nonzero(dilated.reshape(plane_count, -1).T)
+    remainder = height > hb * block or width > wb * block
     if len(plane_of) == 0:
+        if remainder:
+            _label_remainder(labels, depth, intrinsics, normals, offsets, rmse, hb * block, wb * block, cfg, coefficient)
         return labels, plane_moments
     pixel_index, ray_a, ray_b = _block_pixel_tables(intrinsics, height, width, block)
     pixels = pixel_index[block_of]  # (K, block^2)
@@ -920,6 +923,8 @@ def _refine(
     found = nearest != np.iinfo(np.int64).max
     labels.ravel()[pixel_index[block_of[starts]]] = np.where(found, nearest & ((1 << plane_bits) - 1), -1)
     winner = accepted & (keys == nearest[group])
+    if remainder:
+        _label_remainder(labels, depth, intrinsics, normals, offsets, rmse, hb * block, wb * block, cfg, coefficient)
     # For the refit, a joined pixel must also be within 2.5 times the plane's interior RMSE
     # (the noise it really has): pixels of a neighbouring face just past a crease are within
     # the (model) distance threshold but not within the measured noise.
@@ -958,6 +963,35 @@ def _refine(
     units = np.concatenate([flat_moments[interior_blocks], row_moments[own]])
     unit_plane = np.concatenate([flat_interior[interior_blocks], plane_of[own]])
     return labels, _trimmed_moments(units, unit_plane, plane_count, coefficient)
+
+
+def _label_remainder(
+    labels: np.ndarray,
+    depth: np.ndarray,
+    intrinsics: CameraIntrinsics,
+    normals: np.ndarray,
+    offsets: np.ndarray,
+    rmse: np.ndarray,
+    grid_height: int,
+    grid_width: int,
+    cfg: PlanesConfig,
+    coefficient: float,
+) -> None:
+    """Pixels right of / below the block grid (image sides not divisible by the block size)
+    take the label of the nearest grid pixel if they are within the distance threshold of
+    that plane. Updates ``labels`` in place."""
+    height, width = depth.shape
+    v, u = np.nonzero((np.arange(height)[:, None] >= grid_height) | (np.arange(width)[None, :] >= grid_width))
+    nearest = labels[np.minimum(v, grid_height - 1), np.minimum(u, grid_width - 1)]
+    inside = nearest >= 0
+    v, u, nearest = v[inside], u[inside], nearest[inside]
+    z = depth[v, u].astype(np.float64)
+    a, b = _pinhole_rays(intrinsics, height, width)
+    n = normals[nearest]
+    distance = np.abs(z * (n[:, 0] * a[u] + n[:, 1] * b[v] + n[:, 2]) + offsets[nearest])
+    threshold = cfg.refine_distance_sigmas * np.maximum(coefficient * z * z, rmse[nearest])
+    accept = (z > 0) & (distance < threshold)
+    labels[v[accept], u[accept]] = nearest[accept]
 
 
 def _group_medians(values: np.ndarray, groups: np.ndarray, group_count: int) -> np.ndarray:
