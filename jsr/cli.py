@@ -126,7 +126,6 @@ def reconstruct(
     start: int = typer.Option(0, "--start", help="First frame to use (index into the associated frames)."),
     max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Use at most this many frames."),
     stride: int = typer.Option(1, "--stride", help="Use every STRIDE-th frame."),
-    save_masks: bool = typer.Option(False, "--save-masks", help="Write masks/<frame>.png (0 static, K object K)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace the results already in --out."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar or table; errors only."),
     json_summary: bool = typer.Option(False, "--json", help="Print a one-line JSON summary on stdout."),
@@ -139,8 +138,6 @@ def reconstruct(
 
     _configure_logging(verbose, quiet)
     config = load_config(config_file, overrides)
-    if save_masks:
-        config.output.save_masks = True
     data = open_sequence(
         sequence,
         camera_file=camera,

@@ -152,7 +152,6 @@ class BundleAdjustmentConfig:
 class OutputConfig:
     """What a reconstruction writes besides trajectories and counts."""
 
-    save_masks: bool = False
     mesh_voxel_size: float = 0.01
 
 

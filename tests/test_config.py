@@ -32,10 +32,10 @@ def test_paper_thresholds_are_the_defaults():
 def test_file_then_overrides(tmp_path):
     path = tmp_path / "c.yaml"
     path.write_text("ransac:\n  min_matches: 20\nkeyframes:\n  translation: 0.2\n")
-    config = load_config(path, ["ransac.min_matches=12", "output.save_masks=true", "noise.inlier_sigmas=2"])
+    config = load_config(path, ["ransac.min_matches=12", "planes.refine=false", "noise.inlier_sigmas=2"])
     assert config.ransac.min_matches == 12
     assert config.keyframes.translation == 0.2
-    assert config.output.save_masks is True
+    assert config.planes.refine is False
     assert config.noise.inlier_sigmas == 2.0 and isinstance(config.noise.inlier_sigmas, float)
     # untouched keys keep their defaults
     assert config.ransac.min_inlier_ratio == 0.4
@@ -48,7 +48,7 @@ def test_file_then_overrides(tmp_path):
         ("ransacc:\n  min_matches: 3\n", "ransacc"),
         ("ransac:\n  min_matches: many\n", "ransac.min_matches"),
         ("ransac:\n  min_matches: 10.5\n", "ransac.min_matches"),
-        ("output:\n  save_masks: 1\n", "output.save_masks"),
+        ("planes:\n  refine: 1\n", "planes.refine"),
         ("ransac: 5\n", "ransac"),
         ("ransac:\n  min_inlier_ratio: 1.5\n", "ransac.min_inlier_ratio"),
         ("- a\n- b\n", "mapping"),
