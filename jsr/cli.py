@@ -106,6 +106,33 @@ def _print_json(data: dict) -> None:
     sys.stdout.flush()
 
 
+def _open_sequence(sequence: Path, config, camera, preset, start, max_frames, stride):
+    """Open a sequence with the input settings of ``config`` (shared by the commands)."""
+    from jsr.io.dataset import open_sequence
+
+    return open_sequence(
+        sequence,
+        camera_file=camera,
+        preset=preset,
+        max_time_difference=config.input.max_time_difference,
+        start=start,
+        max_frames=max_frames,
+        stride=stride,
+        min_depth=config.input.min_depth,
+        max_depth=config.input.max_depth,
+    )
+
+
+def _fps_reporter(progress: Progress, task, started: float) -> Callable[[int, int], None]:
+    """A ``progress(done, total)`` callback that shows frames per second."""
+
+    def report(done: int, total: int) -> None:
+        elapsed = time.perf_counter() - started
+        progress.update(task, completed=done, total=total, rate=f"{done / max(elapsed, 1e-9):.1f} fps")
+
+    return report
+
+
 SEQUENCE_HELP = "Sequence folder: TUM RGB-D layout (rgb.txt, depth.txt) or a set of colour/depth image pairs."
 
 
@@ -133,22 +160,12 @@ def reconstruct(
 ) -> None:
     """Reconstruct the static scene and every moving object of a sequence."""
     from jsr.config import load_config
-    from jsr.io.dataset import check_first_frame, open_sequence
+    from jsr.io.dataset import check_first_frame
     from jsr.io.run_folder import prepare_output_folder
 
     _configure_logging(verbose, quiet)
     config = load_config(config_file, overrides)
-    data = open_sequence(
-        sequence,
-        camera_file=camera,
-        preset=preset,
-        max_time_difference=config.input.max_time_difference,
-        start=start,
-        max_frames=max_frames,
-        stride=stride,
-        min_depth=config.input.min_depth,
-        max_depth=config.input.max_depth,
-    )
+    data = _open_sequence(sequence, config, camera, preset, start, max_frames, stride)
     check_first_frame(data)
     out_dir = prepare_output_folder(out, overwrite)
 
@@ -236,10 +253,7 @@ def synth(
     started = time.perf_counter()
     with _progress(quiet) as progress:
         task = progress.add_task("synth", total=frames, rate="")
-
-        def report(done: int, total: int) -> None:
-            elapsed = time.perf_counter() - started
-            progress.update(task, completed=done, total=total, rate=f"{done / max(elapsed, 1e-9):.1f} fps")
+        report = _fps_reporter(progress, task, started)
 
         summary = generate_sequence(out, options, overwrite=overwrite, progress=report)
     if json_summary:
@@ -265,22 +279,15 @@ def frames(
 ) -> None:
     """Draw what the front-end sees: keypoints (green 3D, red 2D), planes and segments per frame."""
     from jsr.config import load_config
-    from jsr.io.dataset import open_sequence
     from jsr.pipeline.overlays import write_frame_overlays
 
     _configure_logging(0, quiet)
     config = load_config(config_file, overrides)
-    data = open_sequence(sequence, camera_file=camera, preset=preset,
-                         max_time_difference=config.input.max_time_difference, start=start,
-                         max_frames=max_frames, stride=stride, min_depth=config.input.min_depth,
-                         max_depth=config.input.max_depth)
+    data = _open_sequence(sequence, config, camera, preset, start, max_frames, stride)
     started = time.perf_counter()
     with _progress(quiet) as progress:
         task = progress.add_task("frames", total=len(data), rate="")
-
-        def report(done: int, total: int) -> None:
-            elapsed = time.perf_counter() - started
-            progress.update(task, completed=done, total=total, rate=f"{done / max(elapsed, 1e-9):.1f} fps")
+        report = _fps_reporter(progress, task, started)
 
         written = write_frame_overlays(data, config, out, progress=report)
     if not quiet:

@@ -37,7 +37,7 @@ class NoiseConfig:
     sigma_z_coefficient: float = 1.425e-3
     inlier_sigmas: float = 3.0
     min_inlier_threshold: float = 0.01
-    pixel_sigma: float = 1.0
+    pixel_sigma: float = 1.5
 
 
 @dataclass

@@ -228,16 +228,28 @@ class Reconstructor:
     def _track(self, frame: Frame, measurements: FrameMeasurements, report: FrameReport, timings: dict) -> None:
         config = self.config
         relocalise = self._lost
-        landmark_ids = self.static_map.recent_point_landmarks(None if relocalise else config.matching.recent_keyframes)
         predicted = None if relocalise else self._predicted_pose()
-
-        tic = time.perf_counter()
-        matched = match_frame_to_map(measurements, self.static_map, landmark_ids, predicted, config,
-                                     self._focal_length)
-        timings["matching"] = (time.perf_counter() - tic) * 1000.0
-        tic = time.perf_counter()
-        result = register(matched.correspondences, config.ransac, config.noise, self.rng, initial_guess=predicted)
-        timings["registration"] = (time.perf_counter() - tic) * 1000.0
+        # Tracking matches the landmarks of the last N keyframes. After a loss the frame is
+        # relocalised: first against those same keyframes without a pose prior (the camera is
+        # usually still near where it was lost), then against the whole map. The whole map alone
+        # is not enough: its many near-duplicate landmarks make Lowe's ratio test reject most
+        # matches.
+        attempts = [config.matching.recent_keyframes]
+        if relocalise and len(self.static_map.keyframes) > config.matching.recent_keyframes:
+            attempts.append(None)
+        matching_ms = registration_ms = 0.0
+        for keyframe_count in attempts:
+            landmark_ids = self.static_map.recent_point_landmarks(keyframe_count)
+            tic = time.perf_counter()
+            matched = match_frame_to_map(measurements, self.static_map, landmark_ids, predicted, config,
+                                         self._focal_length)
+            matching_ms += (time.perf_counter() - tic) * 1000.0
+            tic = time.perf_counter()
+            result = register(matched.correspondences, config.ransac, config.noise, self.rng, initial_guess=predicted)
+            registration_ms += (time.perf_counter() - tic) * 1000.0
+            if result.success:
+                break
+        timings["matching"], timings["registration"] = matching_ms, registration_ms
         report.matches, report.inliers = result.num_matches, result.num_inliers
 
         if not result.success:

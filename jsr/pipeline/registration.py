@@ -288,6 +288,13 @@ class _Problem:
         self.p = np.ascontiguousarray(corr.frame_points)
         self.q = np.ascontiguousarray(corr.map_points)
         self.threshold3 = point3d_thresholds(corr, noise_cfg)
+        # With a focal length, points are tested in the image: reprojection error against
+        # inlier_sigmas * pixel_sigma pixels, and (3D points) the depth error against the
+        # paper's sigma = max(1 cm, 3 sigma_Z). Without one, the paper's 3D distance test.
+        self.focal_length = corr.focal_length
+        self.pixel_threshold = noise_cfg.inlier_sigmas * noise_cfg.pixel_sigma
+        with np.errstate(divide="ignore", invalid="ignore"):
+            self.measured_uv = self.p[:, :2] / self.p[:, 2:3]
         self.bearings = _unit_rows(corr.frame_bearings)
         self.x2 = np.ascontiguousarray(corr.map_points_2d)
         self.planes_c = np.concatenate(
@@ -337,7 +344,19 @@ class _Problem:
         flat_rotations = rotations.reshape(k, 9).T  # (9, K), row-major R_ij
         rt_t = np.einsum("kji,kj->ki", rotations, translations)  # R^T t, (K, 3)
         t_sq = np.einsum("ki,ki->k", translations, translations)
-        if a:
+        if a and self.focal_length is not None:
+            camera = np.einsum("ai,kij->kaj", self.q, rotations) - rt_t[:, None, :]  # R^T (q - t), (K, A, 3)
+            z = camera[:, :, 2]
+            front = z > 1e-6
+            uv = camera[:, :, :2] / np.where(front, z, 1.0)[:, :, None]
+            reprojection = np.linalg.norm(uv - self.measured_uv[None], axis=2) * (self.focal_length / self.pixel_threshold)
+            depth_error = np.abs(z - self.p[None, :, 2]) / self.threshold3[None, :]
+            scaled = np.where(front, np.maximum(reprojection, depth_error), np.inf)
+            inliers = scaled < 1.0
+            cost += np.fmin(scaled * scaled, 1.0).sum(axis=1)
+            counts[:, 0] = inliers.sum(axis=1)
+            masks.append(inliers)
+        elif a:
             # |R p + t - q|^2 expanded into one matrix product over all hypotheses.
             squared = self.features3 @ np.concatenate(
                 [-2.0 * flat_rotations, 2.0 * rt_t.T, -2.0 * translations.T, t_sq[None]], axis=0
@@ -357,7 +376,11 @@ class _Problem:
             norm_sq = self.norms2[:, None] - 2.0 * (self.x2 @ translations.T) + t_sq[None]
             depth = self.x2 @ rotations[:, :, 2].T - np.einsum("ki,ki->k", rotations[:, :, 2], translations)
             distance = np.sqrt(np.maximum(norm_sq - along * along, 0.0))
-            scaled = (distance / _threshold(depth, self.noise)).T
+            if self.focal_length is None:
+                scaled = (distance / _threshold(depth, self.noise)).T
+            else:
+                # distance / along is the tangent of the angle to the ray: pixels at focal length f.
+                scaled = (distance / np.maximum(along, 1e-9) * (self.focal_length / self.pixel_threshold)).T
             front = ((along > 0) & (depth > 0)).T
             inliers = front & (scaled < 1.0)
             cost += np.where(front, np.fmin(scaled * scaled, 1.0), 1.0).sum(axis=1)
