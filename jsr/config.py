@@ -91,6 +91,7 @@ class MatchingConfig:
     plane_distance: float = 0.05
     guided_radius_px: float = 15.0
     max_descriptor_distance: float = 0.7
+    bridge_with_previous_frame: bool = True
 
 
 @dataclass
@@ -107,6 +108,8 @@ class RansacConfig:
     sample_2d_below: int = 20
     refine_rounds: int = 3
     refinement: str = "image"
+    prior_translation: float = 0.0
+    prior_rotation_degrees: float = 0.0
 
 
 @dataclass
@@ -216,6 +219,8 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "ransac.plane_inlier_distance": (lambda v: v > 0, "positive"),
     "ransac.batch_size": (lambda v: v >= 1, "at least 1"),
     "ransac.sample_2d_below": (lambda v: v >= 3, "at least 3"),
+    "ransac.prior_translation": (lambda v: v >= 0, "at least 0 (0: no motion prior)"),
+    "ransac.prior_rotation_degrees": (lambda v: v >= 0, "at least 0 (0: no motion prior)"),
     "ransac.refine_rounds": (lambda v: v >= 0, "at least 0 (0 disables refinement)"),
     "keyframes.translation": (lambda v: v >= 0, "at least 0"),
     "keyframes.rotation_degrees": (lambda v: v >= 0, "at least 0"),

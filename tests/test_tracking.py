@@ -69,3 +69,18 @@ def test_same_seed_same_trajectory(static_sequence):
     _, first = track(sequence)
     _, second = track(sequence)
     assert all(np.array_equal(a.T_w_c, b.T_w_c) for a, b in zip(first, second))
+
+
+def test_previous_frame_bridges_what_the_map_cannot_see(static_sequence):
+    # One keyframe only (huge keyframe thresholds) and a strict inlier ratio: the camera soon
+    # sees too little of the first keyframe's scene, and frame-to-map registration fails.
+    sequence = open_sequence(static_sequence)
+    strict = ["keyframes.translation=100", "keyframes.rotation_degrees=180", "ransac.min_inlier_ratio=0.9"]
+    _, without_bridge = track(sequence, strict + ["matching.bridge_with_previous_frame=false"])
+    reconstructor, with_bridge = track(sequence, strict)
+    assert sum(not r.tracked for r in without_bridge) > 0
+    assert reconstructor.frames_bridged > 0
+    bridged = [r for r in with_bridge if r.bridged]
+    assert all(r.new_keyframe for r in bridged)  # the map grows into the new view
+    assert sum(r.tracked for r in with_bridge) > sum(r.tracked for r in without_bridge)
+    assert ate(with_bridge, sequence) < 0.01

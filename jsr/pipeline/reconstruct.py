@@ -52,6 +52,7 @@ class FrameReport:
     tracked: bool
     T_w_c: np.ndarray | None
     relocalised: bool = False
+    bridged: bool = False
     new_keyframe: bool = False
     matches: int = 0
     inliers: int = 0
@@ -173,6 +174,8 @@ class Reconstructor:
         self._velocity = np.eye(4)
         self._lost = False
         self.frames_lost = 0
+        self.frames_bridged = 0
+        self._previous: tuple[FrameMeasurements, np.ndarray] | None = None  # last tracked frame
         # Image-space refinement needs the focal length; None keeps the 3D-distance refinement.
         self._focal_length = (
             0.5 * (intrinsics.fx + intrinsics.fy) if config.ransac.refinement == "image" else None
@@ -219,6 +222,7 @@ class Reconstructor:
         )
         report.tracked, report.T_w_c, report.new_keyframe = True, pose, True
         self._last_pose = pose
+        self._previous = (measurements, pose)
 
     def _predicted_pose(self) -> np.ndarray | None:
         if self._last_pose is None:
@@ -249,6 +253,21 @@ class Reconstructor:
             registration_ms += (time.perf_counter() - tic) * 1000.0
             if result.success:
                 break
+        bridged = False
+        if not result.success and self._previous is not None and config.matching.bridge_with_previous_frame:
+            # The map has no good view of this frame (fast motion into unmapped space): register
+            # against the previous tracked frame instead, and make this frame a keyframe so that
+            # the map grows into the new view rather than being lost for good.
+            tic = time.perf_counter()
+            previous_map = self._previous_frame_map()
+            bridge = match_frame_to_map(measurements, previous_map, np.arange(len(previous_map.points)),
+                                        predicted, config, self._focal_length)
+            bridge_result = register(bridge.correspondences, config.ransac, config.noise, self.rng,
+                                     initial_guess=predicted)
+            registration_ms += (time.perf_counter() - tic) * 1000.0
+            if bridge_result.success:
+                result, bridged = bridge_result, True
+                self.frames_bridged += 1
         timings["matching"], timings["registration"] = matching_ms, registration_ms
         report.matches, report.inliers = result.num_matches, result.num_inliers
 
@@ -256,6 +275,7 @@ class Reconstructor:
             report.reason = result.reason
             self.frames_lost += 1
             self._lost = True
+            self._previous = None
             logger.info("frame %d: static registration failed (%s)", frame.index, result.reason)
             return
 
@@ -267,12 +287,18 @@ class Reconstructor:
             self._velocity = np.eye(4)
         self._last_pose = pose
         self._lost = False
+        self._previous = (measurements, pose)
+        report.bridged = bridged
 
         tic = time.perf_counter()
-        if self.static_map.needs_keyframe(pose, config.keyframes):
+        if bridged or self.static_map.needs_keyframe(pose, config.keyframes):
             points = measurements.points
-            landmark_of = inlier_landmarks(matched, result, len(points))
-            plane_landmark_of = inlier_plane_landmarks(matched, result, len(measurements.planes))
+            if bridged:  # matched to the previous frame, not to the map: all measurements are new
+                landmark_of = np.full(len(points), -1, dtype=np.int64)
+                plane_landmark_of = np.full(len(measurements.planes), -1, dtype=np.int64)
+            else:
+                landmark_of = inlier_landmarks(matched, result, len(points))
+                plane_landmark_of = inlier_plane_landmarks(matched, result, len(measurements.planes))
             self.static_map.add_keyframe(
                 frame.index, frame.timestamp, pose, points, np.arange(len(points)), landmark_of,
                 sample_colors(frame, points.pixels), measurements.planes, np.arange(len(measurements.planes)),
@@ -281,6 +307,15 @@ class Reconstructor:
             report.new_keyframe = True
             self.bundle.maybe_start(self.static_map)
         timings["map_update"] = (time.perf_counter() - tic) * 1000.0
+
+    def _previous_frame_map(self) -> Map:
+        """A one-keyframe map made of the previous tracked frame's 3D points (world frame)."""
+        measurements, pose = self._previous
+        points = measurements.points
+        previous = Map("previous_frame")
+        previous.add_keyframe(-1, 0.0, pose, points, np.arange(len(points)), np.full(len(points), -1),
+                              np.zeros((len(points), 3), np.uint8))
+        return previous
 
     def finish(self) -> None:
         """Wait for and apply the last bundle adjustment."""

@@ -587,7 +587,12 @@ def _refine_pose(
 
 
 def _refine_pose_image_space(
-    problem: _Problem, transform: np.ndarray, masks: list[np.ndarray], focal_length: float
+    problem: _Problem,
+    transform: np.ndarray,
+    masks: list[np.ndarray],
+    focal_length: float,
+    prior: np.ndarray | None = None,
+    prior_sigmas: tuple[float, float] = (0.0, 0.0),
 ) -> np.ndarray | None:
     """Least squares on the inliers with residuals shaped like the sensor's noise.
 
@@ -599,6 +604,11 @@ def _refine_pose_image_space(
     ``pixel_sigma``) and one depth residual (in units of the combined depth noise of measurement
     and landmark); each 2D-3D pair gives two reprojection residuals; planes as in
     :func:`_refine_pose`. The cost is minimised with a Huber loss (scale 2 sigma).
+
+    With a ``prior`` pose (the motion model's prediction) and ``prior_sigmas`` =
+    ``(rotation radians, translation metres)`` both positive, six more residuals pull the pose
+    towards the prediction; this damps the frame-to-frame jitter of scenes whose texture lies
+    at one distance, where a small rotation and a lateral translation explain the data alike.
     """
     m3, m2, mp = masks
     p, q = problem.p[m3], problem.q[m3]
@@ -630,8 +640,12 @@ def _refine_pose_image_space(
         normals = pc[:, :3] @ rotation.T
         parts.append(((normals - pm[:, :3]) / sa).ravel())
         parts.append((pc[:, 3] - normals @ translation - pm[:, 3]) / sd)
+        if use_prior:
+            parts.append(Rotation.from_matrix(prior[:3, :3].T @ rotation).as_rotvec() / prior_sigmas[0])
+            parts.append((translation - prior[:3, 3]) / prior_sigmas[1])
         return np.concatenate(parts)
 
+    use_prior = prior is not None and prior_sigmas[0] > 0 and prior_sigmas[1] > 0
     solution = least_squares(residuals, np.zeros(6), method="trf", loss="huber", f_scale=2.0, max_nfev=50,
                              x_scale=np.array([1e-3, 1e-3, 1e-3, 1e-2, 1e-2, 1e-2]))
     if not np.all(np.isfinite(solution.x)):
@@ -782,7 +796,10 @@ def register(
     transform = best_transform
     cost, _, masks = problem.score_one(transform)
     refine = _refine_pose if corr.focal_length is None else functools.partial(
-        _refine_pose_image_space, focal_length=corr.focal_length
+        _refine_pose_image_space,
+        focal_length=corr.focal_length,
+        prior=initial_guess,
+        prior_sigmas=(np.deg2rad(ransac_cfg.prior_rotation_degrees), ransac_cfg.prior_translation),
     )
     for _ in range(ransac_cfg.refine_rounds):
         refined = refine(problem, transform, masks)

@@ -118,6 +118,7 @@ class ResultsWriter:
             "frames_tracked": sum(r.tracked for r in reports),
             "frames_lost": sum(not r.tracked for r in reports),
             "relocalisations": sum(r.relocalised for r in reports),
+            "frames_bridged": sum(r.bridged for r in reports),
             "seconds": seconds,
             "fps": len(reports) / seconds if seconds > 0 else 0.0,
             "maps": {
