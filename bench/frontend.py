@@ -100,7 +100,7 @@ def main() -> int:
         sequence = open_sequence(folder, min_depth=config.input.min_depth, max_depth=config.input.max_depth)
         start = time.perf_counter()
         result = run_sequence(sequence, config, args.frames, not args.serial)
-        count = len(result["total"])
+        count = len(result["frontend_total"])
         print(f"  {name}: {count} frames of {len(sequence)} ({time.perf_counter() - start:.1f} s)")
         results.append((name, count, result))
     if not args.no_synth:
@@ -112,7 +112,7 @@ def main() -> int:
                 result = run_sequence(sequence, config, args.frames, not args.serial)
                 print(f"  synthetic: {len(result['total'])} frames, {sequence.intrinsics.width}x"
                       f"{sequence.intrinsics.height} ({note})")
-                results.append(("synthetic", len(result["total"]), result))
+                results.append(("synthetic", len(result["frontend_total"]), result))
     if not results:
         print("no sequence to benchmark")
         return 1

@@ -284,6 +284,8 @@ def frames(
     _configure_logging(0, quiet)
     config = load_config(config_file, overrides)
     data = _open_sequence(sequence, config, camera, preset, start, max_frames, stride)
+    if out.exists() and not out.is_dir():
+        _fail(f"--out {out} is a file; give a folder")
     started = time.perf_counter()
     with _progress(quiet) as progress:
         task = progress.add_task("frames", total=len(data), rate="")
@@ -331,7 +333,7 @@ def _print_metrics(metrics: dict) -> None:
         if value is not None:
             shown = value * 100.0 if unit == "cm" else value
             table.add_row(label, f"{shown:.3f} {unit}")
-    for key in ("frames_evaluated", "frames_without_estimate"):
+    for key in ("frames_associated", "gt_frames_without_estimate"):
         if key in camera:
             table.add_row(key.replace("_", " "), str(camera[key]))
     console.print(table)
@@ -373,6 +375,8 @@ def plot(
 
     _configure_logging(0, quiet)
     out_dir = out or Path(results) / "plots"
+    if out_dir.exists() and not out_dir.is_dir():
+        _fail(f"--out {out_dir} is a file; give a folder")
     written = [plot_landmark_counts(Path(results) / "landmarks.csv", out_dir / "landmarks.png")]
     if (Path(results) / "camera.tum").is_file():
         written.append(plot_trajectory(Path(results) / "camera.tum", out_dir / "trajectory.png", groundtruth))

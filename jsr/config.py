@@ -19,6 +19,7 @@ from typing import Any
 import yaml
 
 from jsr.errors import ConfigError
+from jsr.io.text import read_user_text
 
 
 @dataclass
@@ -183,6 +184,7 @@ class Config:
 
 # Range checks that a type alone cannot express: key -> (test, what it must be).
 _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
+    "seed": (lambda v: 0 <= v < 2**63, "a whole number >= 0"),
     "input.max_time_difference": (lambda v: v > 0, "positive"),
     "input.min_depth": (lambda v: v >= 0, "at least 0"),
     "input.max_depth": (lambda v: v > 0, "positive"),
@@ -322,10 +324,9 @@ def load_config(path: Path | None = None, overrides: list[str] | tuple[str, ...]
     config = Config()
     if path is not None:
         path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"config file {path} does not exist")
+        text = read_user_text(path, "config file", ConfigError)
         try:
-            data = yaml.safe_load(path.read_text())
+            data = yaml.safe_load(text)
         except yaml.YAMLError as error:
             first_line = str(error).splitlines()[0]
             raise ConfigError(f"config file {path} is not valid YAML: {first_line}") from None

@@ -84,6 +84,15 @@ def make_bad_input(tmp_path, problem):
         args += ["--camera", tmp_path / "nocam.yaml"]
     elif problem == "bad stride":
         args += ["--stride", "0"]
+    elif problem == "binary rgb.txt":
+        (seq / "rgb.txt").write_bytes(bytes(range(256)))
+    elif problem == "binary config":
+        (tmp_path / "c.yaml").write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe")
+        args += ["--config", tmp_path / "c.yaml"]
+    elif problem == "negative seed":
+        args += ["--set", "seed=-1"]
+    elif problem == "fractional width":
+        (seq / "camera.yaml").write_text("fx: 30\nfy: 30\ncx: 16\ncy: 12\nwidth: 32.5\nheight: 24\n")
     return args
 
 
@@ -100,6 +109,10 @@ BAD_INPUTS = {
     "wrong resolution": "camera calibration is 640x480",
     "bad camera file": "does not exist",
     "bad stride": "--stride",
+    "binary rgb.txt": "not a text file",
+    "binary config": "not a text file",
+    "negative seed": "'seed' must be a whole number >= 0",
+    "fractional width": "width must be a whole number",
 }
 
 

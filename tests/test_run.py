@@ -44,3 +44,14 @@ def test_complete_run_files_agree(synth_sequence, tmp_path):
     assert np.allclose(keyframe_poses[0], np.eye(4))
     timings = read_csv(tmp_path / "timings.csv")
     assert len(timings) == 8 and "sift_ms" in timings[0]
+
+
+def test_same_input_config_and_seed_give_identical_files(synth_sequence, tmp_path):
+    sequence = open_sequence(synth_sequence, max_frames=8)
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        run_reconstruction(sequence, load_config(), tmp_path / name)
+    compared = ["config.yaml", "camera.tum", "landmarks.csv", "static/keyframes.tum", "static/landmarks.ply",
+                "static/mesh.ply", "static/cloud.ply"]
+    for relative in compared:
+        assert (tmp_path / "a" / relative).read_bytes() == (tmp_path / "b" / relative).read_bytes(), relative

@@ -67,10 +67,42 @@ def fuse_keyframes(
         blocks = grid.compute_unique_block_coordinates(depth_image, calibration, extrinsic, 1.0, max_depth)
         grid.integrate(blocks, depth_image, color_image, calibration, extrinsic, 1.0, max_depth)
     weight_threshold = float(max(1, min(3, len(map_.keyframes) // 3)))
-    mesh = grid.extract_triangle_mesh(weight_threshold=weight_threshold).to_legacy()
+    mesh = _sorted_mesh(grid.extract_triangle_mesh(weight_threshold=weight_threshold).to_legacy(), o3d)
     mesh.compute_vertex_normals()
-    cloud = grid.extract_point_cloud(weight_threshold=weight_threshold).to_legacy()
+    cloud = _sorted_cloud(grid.extract_point_cloud(weight_threshold=weight_threshold).to_legacy(), o3d)
     return mesh, cloud
+
+
+def _vertex_order(points: np.ndarray) -> np.ndarray:
+    # The voxel grid's hash map hands out vertices in an order that varies between runs;
+    # sorting by coordinates makes the written files identical for identical input.
+    return np.lexsort(points.T[::-1]) if len(points) else np.zeros(0, dtype=np.int64)
+
+
+def _sorted_cloud(cloud, o3d):
+    points = np.asarray(cloud.points)
+    order = _vertex_order(points)
+    sorted_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[order]))
+    if cloud.has_colors():
+        sorted_cloud.colors = o3d.utility.Vector3dVector(np.asarray(cloud.colors)[order])
+    if cloud.has_normals():
+        sorted_cloud.normals = o3d.utility.Vector3dVector(np.asarray(cloud.normals)[order])
+    return sorted_cloud
+
+
+def _sorted_mesh(mesh, o3d):
+    vertices = np.asarray(mesh.vertices)
+    order = _vertex_order(vertices)
+    new_index = np.empty(len(order), dtype=np.int64)
+    new_index[order] = np.arange(len(order))
+    triangles = new_index[np.asarray(mesh.triangles)]
+    triangles = triangles[np.lexsort(triangles.T[::-1])] if len(triangles) else triangles
+    sorted_mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(vertices[order]), o3d.utility.Vector3iVector(triangles.astype(np.int32))
+    )
+    if mesh.has_vertex_colors():
+        sorted_mesh.vertex_colors = o3d.utility.Vector3dVector(np.asarray(mesh.vertex_colors)[order])
+    return sorted_mesh
 
 
 def write_dense_models(reconstructor, sequence: RGBDSequence, config: Config, out_dir: Path) -> None:

@@ -22,6 +22,7 @@ import yaml
 
 from jsr.errors import InputError
 from jsr.io.atomic import atomic_write_text
+from jsr.io.text import read_user_text
 
 
 @dataclass(frozen=True)
@@ -140,6 +141,9 @@ def camera_from_dict(data: object, source: str) -> CameraIntrinsics:
     missing = [key for key in _REQUIRED_KEYS if key not in data]
     if missing:
         raise InputError(f"{source}: missing {', '.join(missing)}; add them to the file")
+    for key in ("width", "height"):
+        if isinstance(data[key], bool) or not isinstance(data[key], int):
+            raise InputError(f"{source}: {key} must be a whole number of pixels, got {data[key]!r}")
     try:
         values = {key: float(data[key]) for key in ("fx", "fy", "cx", "cy")}
         width, height = int(data["width"]), int(data["height"])
@@ -147,6 +151,8 @@ def camera_from_dict(data: object, source: str) -> CameraIntrinsics:
         distortion = tuple(float(k) for k in (data.get("distortion") or ()))
     except (TypeError, ValueError) as error:
         raise InputError(f"{source}: a value is not a number ({error})") from None
+    if not np.all(np.isfinite(list(values.values()) + [depth_scale, *distortion])):
+        raise InputError(f"{source}: every value must be a finite number")
     if width <= 0 or height <= 0 or values["fx"] <= 0 or values["fy"] <= 0 or depth_scale <= 0:
         raise InputError(f"{source}: fx, fy, width, height and depth_scale must be positive")
     if len(distortion) not in (0, 4, 5):
@@ -157,11 +163,10 @@ def camera_from_dict(data: object, source: str) -> CameraIntrinsics:
 def load_camera_yaml(path: Path) -> CameraIntrinsics:
     """Read a ``camera.yaml`` file; raises :class:`InputError` naming the problem."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"camera file {path} does not exist")
+    text = read_user_text(path, "camera file")
     try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as error:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
         raise InputError(f"cannot read camera file {path}: {str(error).splitlines()[0]}") from None
     return camera_from_dict(data, str(path))
 

@@ -28,9 +28,14 @@ import numpy as np
 
 from jsr.errors import InputError
 from jsr.io.camera import CameraIntrinsics, resolve_intrinsics
+from jsr.io.text import read_user_text
 from jsr.io.trajectory import read_tum_trajectory
 
 logger = logging.getLogger(__name__)
+
+# OpenCV's own warnings (e.g. "PNG input buffer is incomplete") would reach the terminal beside
+# jsr's one-line error; jsr checks every decoded image itself.
+cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm")
 COLOUR_FOLDERS = ("rgb", "color", "colour", "image", "images")
@@ -88,7 +93,7 @@ class SelectionReport:
 def read_image_list(path: Path) -> list[tuple[float, str]]:
     """Read a TUM ``rgb.txt``/``depth.txt``: ``(timestamp, relative filename)`` pairs, file order."""
     entries = []
-    for line_number, line in enumerate(path.read_text().splitlines(), start=1):
+    for line_number, line in enumerate(read_user_text(path, "image list").splitlines(), start=1):
         text = line.strip()
         if not text or text.startswith("#"):
             continue

@@ -13,6 +13,7 @@ import numpy as np
 from jsr.errors import InputError
 from jsr.geometry import pose_from_tum, pose_to_tum
 from jsr.io.atomic import atomic_write_text
+from jsr.io.text import read_user_text
 
 
 def format_tum_lines(timestamps: np.ndarray, poses: np.ndarray) -> list[str]:
@@ -41,10 +42,8 @@ def write_tum_trajectory(path: Path, timestamps: np.ndarray, poses: np.ndarray, 
 def read_tum_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Read a TUM file. Returns ``(N,)`` timestamps and ``(N, 4, 4)`` poses, in file order."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"trajectory file {path} does not exist")
     timestamps, rows = [], []
-    for line_number, line in enumerate(path.read_text().splitlines(), start=1):
+    for line_number, line in enumerate(read_user_text(path, "trajectory file").splitlines(), start=1):
         text = line.strip()
         if not text or text.startswith("#"):
             continue

@@ -27,7 +27,7 @@ from jsr.pipeline.segments import build_segments
 
 logger = logging.getLogger(__name__)
 
-STAGES = ("sift", "depth_lookup", "planes", "segments", "total")
+STAGES = ("sift", "depth_lookup", "planes", "segments", "frontend_total")
 
 
 class FrontEnd:
@@ -92,7 +92,7 @@ class FrontEnd:
             "depth_lookup": lookup_ms,
             "planes": planes_ms,
             "segments": segments_ms,
-            "total": total_ms,
+            "frontend_total": total_ms,
         }
         logger.debug(
             "frame %d: %d points (%d 3D), %d planes, %d segments, %.1f ms",

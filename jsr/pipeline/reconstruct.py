@@ -22,7 +22,7 @@ from jsr.io.camera import CameraIntrinsics
 from jsr.io.dataset import Frame
 from jsr.pipeline.bundle import BundleScheduler
 from jsr.pipeline.frontend import FrontEnd
-from jsr.pipeline.maps import Map, transform_planes
+from jsr.pipeline.maps import Map
 from jsr.pipeline.matching import match_descriptors, match_planes
 from jsr.pipeline.measurements import FrameMeasurements
 from jsr.pipeline.registration import Correspondences, RegistrationResult, register
@@ -44,7 +44,13 @@ class MapCounts:
 
 @dataclass
 class FrameReport:
-    """What happened to one frame."""
+    """What happened to one frame.
+
+    ``T_w_c`` is the pose when the frame was tracked. ``reference_keyframe`` (the static map's
+    newest keyframe then) and ``T_keyframe_cam`` tie the frame to that keyframe, so that the
+    pose can follow the keyframe when bundle adjustment moves it (see
+    :meth:`Reconstructor.current_pose`).
+    """
 
     frame_index: int
     timestamp: float
@@ -53,6 +59,8 @@ class FrameReport:
     T_w_c: np.ndarray | None
     relocalised: bool = False
     bridged: bool = False
+    reference_keyframe: int = -1
+    T_keyframe_cam: np.ndarray | None = None
     new_keyframe: bool = False
     matches: int = 0
     inliers: int = 0
@@ -192,6 +200,9 @@ class Reconstructor:
         # A bundle adjustment started after the previous keyframe ran while the front-end
         # worked; it is applied here, always at this point, so runs stay reproducible.
         self.bundle.apply_finished(self.static_map, wait=True)
+        if self.reports and self._last_pose is not None and self.reports[-1].tracked:
+            # bundle adjustment may have moved the keyframe the last pose hangs from
+            self._last_pose = self.current_pose(self.reports[-1])
         timings = dict(measurements.timings_ms)
         report = FrameReport(frame.index, frame.timestamp, frame.name, tracked=False, T_w_c=None)
 
@@ -200,6 +211,10 @@ class Reconstructor:
         else:
             self._track(frame, measurements, report, timings)
 
+        if report.tracked and self.static_map.keyframes:
+            reference = self.static_map.keyframes[-1]
+            report.reference_keyframe = reference.keyframe_id
+            report.T_keyframe_cam = np.linalg.inv(reference.T_map_cam) @ report.T_w_c
         report.maps = {m.name: MapCounts(len(m.keyframes), m.points.active_count, len(m.planes), report.tracked)
                        for m in self.maps}
         timings["frame_total"] = (time.perf_counter() - started) * 1000.0
@@ -308,6 +323,14 @@ class Reconstructor:
             self.bundle.maybe_start(self.static_map)
         timings["map_update"] = (time.perf_counter() - tic) * 1000.0
 
+    def current_pose(self, report: FrameReport) -> np.ndarray | None:
+        """``T_w_c`` of a tracked frame with the latest keyframe poses (after bundle adjustment)."""
+        if not report.tracked:
+            return None
+        if report.reference_keyframe < 0:
+            return report.T_w_c
+        return self.static_map.keyframes[report.reference_keyframe].T_map_cam @ report.T_keyframe_cam
+
     def _previous_frame_map(self) -> Map:
         """A one-keyframe map made of the previous tracked frame's 3D points (world frame)."""
         measurements, pose = self._previous
@@ -320,3 +343,8 @@ class Reconstructor:
     def finish(self) -> None:
         """Wait for and apply the last bundle adjustment."""
         self.bundle.finish(self.static_map)
+
+    def close(self) -> None:
+        """Stop the worker threads (front-end and bundle adjustment); the maps stay usable."""
+        self.frontend.close()
+        self.bundle.shutdown()

@@ -38,7 +38,7 @@ from jsr.pipeline.reconstruct import FrameReport, Reconstructor
 logger = logging.getLogger(__name__)
 
 LANDMARK_HEADER = ["frame", "timestamp", "map", "keyframes", "point_landmarks", "plane_landmarks", "tracked"]
-STAGE_ORDER = ["sift", "depth_lookup", "planes", "segments", "total", "matching", "registration", "map_update",
+STAGE_ORDER = ["sift", "depth_lookup", "planes", "segments", "frontend_total", "matching", "registration", "map_update",
                "frame_total"]
 
 
@@ -65,8 +65,8 @@ class ResultsWriter:
         write_tum_trajectory(
             self.out_dir / "camera.tum",
             np.array([r.timestamp for r in tracked]),
-            np.array([r.T_w_c for r in tracked]).reshape(-1, 4, 4),
-            header="camera-to-world T_w_c of every tracked frame; world = first camera frame",
+            np.array([reconstructor.current_pose(r) for r in tracked]).reshape(-1, 4, 4),
+            header="camera-to-world T_w_c of every tracked frame (after bundle adjustment); world = first camera frame",
         )
         rows = []
         for report in reports:
@@ -180,4 +180,5 @@ def run_reconstruction(
         if status != "complete":
             writer.write_tables(reconstructor)
         summary = writer.write_summary(reconstructor, status, seconds, error)
+        reconstructor.close()
     return summary
