@@ -110,7 +110,7 @@ def main() -> int:
                 print(f"  synthetic: skipped ({note})")
             else:
                 result = run_sequence(sequence, config, args.frames, not args.serial)
-                print(f"  synthetic: {len(result['total'])} frames, {sequence.intrinsics.width}x"
+                print(f"  synthetic: {len(result['frontend_total'])} frames, {sequence.intrinsics.width}x"
                       f"{sequence.intrinsics.height} ({note})")
                 results.append(("synthetic", len(result["frontend_total"]), result))
     if not results:

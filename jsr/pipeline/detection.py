@@ -1,0 +1,161 @@
+"""Moving-object detection from segment outlier ratios (Caccamo et al. 2017, Section 2.1).
+
+After a frame is registered against the static map, the point measurements matched to static
+landmarks are either inliers (they move with the static scene) or outliers. A segment whose
+matched features are mostly outliers moves differently from the static scene: it is a moving
+region, and its features initialise a new object map. Segments of one object that touch in
+the image are grouped so that they initialise a single object map.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from jsr.config import DetectionConfig
+from jsr.pipeline.measurements import Segments
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class SegmentOutlierStats:
+    """Per segment (``S`` rows): matched point features, outliers among them, and their ratio
+    (``outliers / matched``, 0.0 for a segment without matched features)."""
+
+    matched: np.ndarray  # (S,) int64
+    outliers: np.ndarray  # (S,) int64
+    outlier_ratio: np.ndarray  # (S,) float64
+
+
+def _mask(values: np.ndarray | None, count: int, name: str, default: bool) -> np.ndarray:
+    if values is None:
+        return np.full(count, default, dtype=bool)
+    array = np.asarray(values, dtype=bool)
+    if array.shape != (count,):
+        raise ValueError(f"{name} must have shape ({count},), got {array.shape}")
+    return array
+
+
+def segment_outlier_stats(
+    segments: Segments,
+    matched: np.ndarray,
+    inlier: np.ndarray,
+    exclude: np.ndarray | None = None,
+) -> SegmentOutlierStats:
+    """Matched features and outlier ratio of every segment.
+
+    ``matched``, ``inlier``, ``exclude``: ``(N,)`` bool over the frame's point measurements.
+    A measurement counts when it is matched and not excluded; it is an outlier when it is
+    not also an inlier (an inlier that was not matched is ignored).
+    """
+    count = len(np.asarray(matched))
+    matched = _mask(matched, count, "matched", True)
+    inlier = _mask(inlier, count, "inlier", False)
+    exclude = _mask(exclude, count, "exclude", False)
+    num_segments = len(segments)
+    lengths = np.array([len(idx) for idx in segments.point_indices], dtype=np.int64)
+    if len(lengths) != num_segments:
+        raise ValueError(f"{len(lengths)} point index arrays for {num_segments} segments")
+    if lengths.sum() == 0:
+        zeros = np.zeros(num_segments, dtype=np.int64)
+        return SegmentOutlierStats(zeros, zeros.copy(), np.zeros(num_segments))
+    members = np.concatenate([np.asarray(idx, dtype=np.int64).ravel() for idx in segments.point_indices])
+    owner = np.repeat(np.arange(num_segments), lengths)
+    counted = matched[members] & ~exclude[members]
+    outlier = counted & ~inlier[members]
+    matched_counts = np.bincount(owner, weights=counted, minlength=num_segments).astype(np.int64)
+    outlier_counts = np.bincount(owner, weights=outlier, minlength=num_segments).astype(np.int64)
+    ratio = np.divide(
+        outlier_counts, matched_counts, out=np.zeros(num_segments), where=matched_counts > 0
+    )
+    return SegmentOutlierStats(matched_counts, outlier_counts, ratio)
+
+
+def detect_moving_segments(
+    segments: Segments,
+    matched: np.ndarray,
+    inlier: np.ndarray,
+    config: DetectionConfig,
+    exclude: np.ndarray | None = None,
+) -> list[int]:
+    """Segments (ascending) whose outlier ratio exceeds ``config.segment_outlier_ratio``
+    (strictly) and that have at least ``config.min_segment_features`` matched features,
+    ignoring the measurements in ``exclude`` (e.g. those already given to an object map)."""
+    stats = segment_outlier_stats(segments, matched, inlier, exclude)
+    moving = (stats.outlier_ratio > config.segment_outlier_ratio) & (
+        stats.matched >= config.min_segment_features
+    )
+    ids = np.flatnonzero(moving).tolist()
+    if ids:
+        logger.debug(
+            "moving segments %s (outlier ratios %s)", ids, np.round(stats.outlier_ratio[ids], 3).tolist()
+        )
+    return ids
+
+
+def segment_adjacency_pairs(label_image: np.ndarray, max_gap_pixels: int = 0) -> np.ndarray:
+    """``(E, 2)`` unique pairs ``(a, b)``, ``a < b``, of segment labels whose pixels are at most
+    ``max_gap_pixels + 1`` apart along both image axes (8-neighbours for a gap of 0).
+    Label -1 (no segment) is ignored."""
+    labels = np.asarray(label_image)
+    if labels.ndim != 2:
+        raise ValueError(f"label image must be 2D, got shape {labels.shape}")
+    if max_gap_pixels < 0:
+        raise ValueError(f"max_gap_pixels must be >= 0, got {max_gap_pixels}")
+    height, width = labels.shape
+    reach = max_gap_pixels + 1
+    pairs = []
+    # Half of the offsets in the (2 reach + 1)^2 window: the other half gives the same pairs.
+    for dy in range(0, reach + 1):
+        for dx in range(-reach, reach + 1):
+            if dy == 0 and dx <= 0:
+                continue
+            if dy >= height or abs(dx) >= width:
+                continue
+            a = labels[: height - dy, max(0, -dx) : width - max(0, dx)]
+            b = labels[dy:, max(0, dx) : width + min(0, dx)]
+            keep = (a >= 0) & (b >= 0) & (a != b)
+            if keep.any():
+                pairs.append(np.stack([a[keep], b[keep]], axis=1))
+    if not pairs:
+        return np.zeros((0, 2), dtype=np.int64)
+    stacked = np.sort(np.concatenate(pairs).astype(np.int64), axis=1)
+    return np.unique(stacked, axis=0)
+
+
+def merge_adjacent_moving_segments(
+    segments: Segments, ids: list[int], max_gap_pixels: int = 0
+) -> list[list[int]]:
+    """Group the moving segments ``ids`` that touch in the image (directly, or across at
+    most ``max_gap_pixels`` pixels of other labels), transitively, so that one object spread
+    over several segments initialises one object map.
+
+    Returns groups with ascending members, ordered by their smallest member; every id
+    appears in exactly one group.
+    """
+    unique_ids = sorted({int(i) for i in ids})
+    if not unique_ids:
+        return []
+    num_segments = len(segments)
+    if unique_ids[0] < 0 or unique_ids[-1] >= num_segments:
+        raise ValueError(f"segment ids {unique_ids} out of range for {num_segments} segments")
+    # Keep only the moving segments in the label image, renumbered 0..M-1.
+    relabel = np.full(num_segments + 1, -1, dtype=np.int64)  # last entry serves label -1
+    relabel[unique_ids] = np.arange(len(unique_ids))
+    labels = np.asarray(segments.label_image, dtype=np.int64)
+    moving_labels = relabel[np.where((labels >= 0) & (labels < num_segments), labels, -1)]
+    pairs = segment_adjacency_pairs(moving_labels, max_gap_pixels)
+    count = len(unique_ids)
+    graph = coo_matrix(
+        (np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(count, count)
+    )
+    _, component = connected_components(graph, directed=False)
+    groups: dict[int, list[int]] = {}
+    for position, comp in enumerate(component):
+        groups.setdefault(int(comp), []).append(unique_ids[position])
+    return sorted(groups.values(), key=lambda group: group[0])
