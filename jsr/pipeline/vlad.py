@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Hashable
 
 import numpy as np
+from scipy.sparse import csr_matrix
 
 logger = logging.getLogger(__name__)
 
@@ -97,8 +98,8 @@ def kmeans(
     scale = max(float(np.abs(x).max()), 1e-12)
     for iteration in range(iterations):
         counts = np.bincount(labels, minlength=k)
-        sums = np.zeros_like(centres)
-        np.add.at(sums, labels, x)
+        membership = csr_matrix((np.ones(len(x)), (labels, np.arange(len(x)))), shape=(k, len(x)))
+        sums = np.asarray(membership @ x)
         new_centres = centres.copy()
         filled = counts > 0
         new_centres[filled] = sums[filled] / counts[filled, None]

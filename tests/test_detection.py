@@ -1,0 +1,154 @@
+"""Moving-object detection from segment outlier ratios (Section 2.1)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jsr.config import DetectionConfig
+from jsr.pipeline.detection import (
+    detect_moving_segments,
+    merge_adjacent_moving_segments,
+    segment_adjacency_pairs,
+    segment_outlier_stats,
+)
+from jsr.pipeline.measurements import Segments
+
+
+def _segments(label_image: np.ndarray, point_indices: list[list[int]]) -> Segments:
+    count = len(point_indices)
+    labels = np.asarray(label_image, dtype=np.int32)
+    return Segments(
+        label_image=labels,
+        plane_index=np.full(count, -1, dtype=np.int64),
+        point_indices=[np.asarray(p, dtype=np.int64) for p in point_indices],
+        pixel_counts=np.array([(labels == i).sum() for i in range(count)], dtype=np.int64),
+    )
+
+
+def _four_segments() -> tuple[Segments, np.ndarray, np.ndarray]:
+    """Segments of 10 points each (0-9, 10-19, 20-29, 30-39); points 40-44 are in none.
+
+    Segment 0: 10 matched, 1 outlier  (ratio 0.1)   static
+    Segment 1: 10 matched, 8 outliers (ratio 0.8)   moving
+    Segment 2: 4 matched, 4 outliers  (ratio 1.0)   too few matched features
+    Segment 3: 10 matched, 6 outliers (ratio 0.6)   exactly at the threshold: not moving
+    """
+    labels = np.full((4, 8), -1)
+    labels[:, 0:2], labels[:, 2:4], labels[:, 4:6], labels[:, 6:8] = 0, 1, 2, 3
+    segments = _segments(labels, [list(range(i * 10, i * 10 + 10)) for i in range(4)])
+    matched = np.ones(45, dtype=bool)
+    matched[24:30] = False
+    inlier = matched.copy()
+    inlier[[0]] = False
+    inlier[10:18] = False
+    inlier[20:24] = False
+    inlier[30:36] = False
+    inlier[40:45] = False  # outliers outside every segment do not matter
+    return segments, matched, inlier
+
+
+def test_outlier_stats_per_segment():
+    segments, matched, inlier = _four_segments()
+    stats = segment_outlier_stats(segments, matched, inlier)
+    np.testing.assert_array_equal(stats.matched, [10, 10, 4, 10])
+    np.testing.assert_array_equal(stats.outliers, [1, 8, 4, 6])
+    np.testing.assert_allclose(stats.outlier_ratio, [0.1, 0.8, 1.0, 0.6])
+
+
+def test_detects_segments_with_high_outlier_ratio_and_enough_features():
+    segments, matched, inlier = _four_segments()
+    config = DetectionConfig(segment_outlier_ratio=0.6, min_segment_features=5)
+    assert detect_moving_segments(segments, matched, inlier, config) == [1]
+    # Lower the feature minimum: segment 2 qualifies; lower the ratio: segment 3 does.
+    assert detect_moving_segments(segments, matched, inlier, DetectionConfig(0.6, 4)) == [1, 2]
+    assert detect_moving_segments(segments, matched, inlier, DetectionConfig(0.55, 5)) == [1, 3]
+    assert detect_moving_segments(segments, matched, inlier, DetectionConfig(0.85, 1)) == [2]
+
+
+def test_unmatched_inliers_are_ignored():
+    segments, matched, inlier = _four_segments()
+    inlier = inlier.copy()
+    inlier[24:30] = True  # flagged inliers that were never matched: still not counted
+    stats = segment_outlier_stats(segments, matched, inlier)
+    assert stats.matched[2] == 4 and stats.outliers[2] == 4
+
+
+def test_excluded_measurements_are_ignored():
+    segments, matched, inlier = _four_segments()
+    config = DetectionConfig(segment_outlier_ratio=0.6, min_segment_features=5)
+    exclude = np.zeros(45, dtype=bool)
+    exclude[10:16] = True  # six outliers of segment 1 already belong to an object map
+    stats = segment_outlier_stats(segments, matched, inlier, exclude)
+    assert stats.matched[1] == 4 and stats.outliers[1] == 2
+    assert detect_moving_segments(segments, matched, inlier, config, exclude=exclude) == []
+    exclude[:] = False
+    exclude[36:40] = True  # four inliers of segment 3 gone: 6 of 6 outliers
+    assert detect_moving_segments(segments, matched, inlier, config, exclude=exclude) == [1, 3]
+
+
+def test_bad_mask_shape_and_no_points():
+    segments, matched, inlier = _four_segments()
+    with pytest.raises(ValueError):
+        segment_outlier_stats(segments, matched, inlier[:-1])
+    empty = _segments(np.full((2, 2), -1), [[], []])
+    stats = segment_outlier_stats(empty, np.zeros(0, bool), np.zeros(0, bool))
+    np.testing.assert_array_equal(stats.matched, [0, 0])
+    assert detect_moving_segments(empty, np.zeros(0, bool), np.zeros(0, bool), DetectionConfig()) == []
+
+
+def _grid_segments() -> Segments:
+    """A 6x9 label image:
+
+        0 0 1 1 -1 2 2 -1 -1
+        0 0 1 1 -1 2 2 -1 -1
+        3 3 3 -1 -1 -1 -1 -1 4
+        3 3 3 -1 -1 -1 -1 4 -1
+        -1 -1 -1 -1 -1 -1 -1 -1 -1
+        5 5 -1 -1 -1 -1 -1 6 6
+    """
+    labels = np.array(
+        [
+            [0, 0, 1, 1, -1, 2, 2, -1, -1],
+            [0, 0, 1, 1, -1, 2, 2, -1, -1],
+            [3, 3, 3, -1, -1, -1, -1, -1, 4],
+            [3, 3, 3, -1, -1, -1, -1, 4, -1],
+            [-1, -1, -1, -1, -1, -1, -1, -1, -1],
+            [5, 5, -1, -1, -1, -1, -1, 6, 6],
+        ]
+    )
+    return _segments(labels, [[] for _ in range(7)])
+
+
+def test_adjacency_pairs():
+    segments = _grid_segments()
+    pairs = {tuple(p) for p in segment_adjacency_pairs(segments.label_image).tolist()}
+    # 0-1 side by side, 0-3 and 1-3 stacked (1-3 also diagonally); 2 and 4 touch nothing
+    # directly; 4's two pixels touch each other diagonally (same label, no pair).
+    assert pairs == {(0, 1), (0, 3), (1, 3)}
+    gap1 = {tuple(p) for p in segment_adjacency_pairs(segments.label_image, max_gap_pixels=1).tolist()}
+    # Across one pixel: 1-2 (background column), 3-5 (background row), 2-4 (one column and
+    # one row apart), 4-6 (background row).
+    assert gap1 == {(0, 1), (0, 3), (1, 3), (1, 2), (3, 5), (2, 4), (4, 6)}
+
+
+def test_merge_groups_touching_moving_segments_only():
+    segments = _grid_segments()
+    # 0 and 3 touch; 1 would bridge them but is not moving, 0-3 touch anyway.
+    assert merge_adjacent_moving_segments(segments, [3, 0, 2]) == [[0, 3], [2]]
+    # 1 and 2 are separated by a one-pixel column of background.
+    assert merge_adjacent_moving_segments(segments, [1, 2]) == [[1], [2]]
+    assert merge_adjacent_moving_segments(segments, [1, 2], max_gap_pixels=1) == [[1, 2]]
+    # Transitive: 0-1 and 1-3 give one group; 4 (diagonal pixels only) and 6 stay apart.
+    assert merge_adjacent_moving_segments(segments, [4, 6, 1, 0, 3]) == [[0, 1, 3], [4], [6]]
+    assert merge_adjacent_moving_segments(segments, []) == []
+    with pytest.raises(ValueError):
+        merge_adjacent_moving_segments(segments, [7])
+
+
+def test_merge_with_a_non_moving_segment_in_between():
+    labels = np.array([[0, 1, 2], [0, 1, 2]])
+    segments = _segments(labels, [[], [], []])
+    # Segments 0 and 2 only touch through segment 1, which is static: two objects.
+    assert merge_adjacent_moving_segments(segments, [0, 2]) == [[0], [2]]
+    assert merge_adjacent_moving_segments(segments, [0, 1, 2]) == [[0, 1, 2]]
