@@ -141,7 +141,7 @@ class VladConfig:
 class BundleAdjustmentConfig:
     """Per-map bundle adjustment."""
 
-    enabled: bool = False
+    enabled: bool = True
     every_keyframes: int = 5
     window_keyframes: int = 10
     max_iterations: int = 50
