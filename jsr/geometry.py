@@ -43,6 +43,18 @@ def transform_points(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ transform[:3, :3].T + transform[:3, 3]
 
 
+def transform_planes(T_a_b: np.ndarray, planes_b: np.ndarray) -> np.ndarray:
+    """Planes ``(P, 4)`` ``[n, d]`` (``n . x + d = 0``) in frame b to frame a.
+
+    Each plane is first scaled to a unit normal (``n`` and ``d`` alike), then
+    ``n_a = R n_b`` and ``d_a = d_b - n_a . t``.
+    """
+    planes_b = np.asarray(planes_b, dtype=float).reshape(-1, 4)
+    planes_b = planes_b / np.linalg.norm(planes_b[:, :3], axis=1, keepdims=True)
+    normals = planes_b[:, :3] @ T_a_b[:3, :3].T
+    return np.column_stack([normals, planes_b[:, 3] - normals @ T_a_b[:3, 3]])
+
+
 def rotation_angle(rotation: np.ndarray) -> np.ndarray:
     """Angle in radians of a ``(3, 3)`` rotation or a ``(N, 3, 3)`` stack, numerically safe."""
     trace = np.trace(rotation, axis1=-2, axis2=-1)

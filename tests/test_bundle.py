@@ -22,7 +22,8 @@ from jsr.geometry import (
     transform_points,
 )
 from jsr.pipeline.bundle import BundleProblem, BundleScheduler, apply_solution, bundle_adjust, huber_loss
-from jsr.pipeline.maps import Keyframe, Map, transform_planes
+from jsr.geometry import transform_planes
+from jsr.pipeline.maps import Keyframe, Map
 
 FX = FY = 525.0
 CX, CY = 319.5, 239.5

@@ -7,7 +7,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from jsr.io.camera import CameraIntrinsics
-from jsr.pipeline.matching import guided_match, match_descriptors, match_planes, transform_planes
+from jsr.geometry import transform_planes
+from jsr.pipeline.matching import guided_match, match_descriptors, match_planes
 
 CAMERA = CameraIntrinsics(fx=525.0, fy=525.0, cx=319.5, cy=239.5, width=640, height=480)
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from jsr.config import KeyframesConfig
-from jsr.geometry import invert_transform, rotation_angle, transform_points
+from jsr.geometry import invert_transform, rotation_angle, transform_planes, transform_points
 
 logger = logging.getLogger(__name__)
 
@@ -289,11 +289,3 @@ class Map:
         logger.debug("%s: keyframe %d at frame %d (%d points, %d planes)", self.name, keyframe.keyframe_id,
                      frame_index, int(keep.sum()), len(plane_landmark_ids))
         return keyframe
-
-
-def transform_planes(T_a_b: np.ndarray, planes_b: np.ndarray) -> np.ndarray:
-    """Planes ``(P, 4)`` ``[n, d]`` in frame b to frame a: ``n_a = R n_b``, ``d_a = d_b - n_a . t``."""
-    planes_b = np.asarray(planes_b, dtype=float).reshape(-1, 4)
-    normals = planes_b[:, :3] @ T_a_b[:3, :3].T
-    offsets = planes_b[:, 3] - normals @ T_a_b[:3, 3]
-    return np.column_stack([normals, offsets])

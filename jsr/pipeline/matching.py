@@ -9,6 +9,8 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+
+from jsr.geometry import transform_planes
 from scipy.spatial import cKDTree
 
 logger = logging.getLogger(__name__)
@@ -113,14 +115,6 @@ def _normalised_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.linalg.norm(a - b, axis=1)
 
 
-def transform_planes(transform: np.ndarray, planes: np.ndarray) -> np.ndarray:
-    """``(P, 4)`` planes ``[n, d]`` in frame b moved into frame a by ``T_a_b``."""
-    planes = np.asarray(planes, dtype=float).reshape(-1, 4)
-    normals = planes[:, :3] / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
-    moved = normals @ transform[:3, :3].T
-    return np.column_stack([moved, planes[:, 3] - moved @ transform[:3, 3]])
-
-
 def match_planes(
     frame_planes: np.ndarray,
     map_planes: np.ndarray,
@@ -141,13 +135,15 @@ def match_planes(
     if len(frame_planes) == 0 or len(map_planes) == 0:
         return _NO_PAIRS.copy()
     moved = transform_planes(np.asarray(T_map_cam_predicted, dtype=float), frame_planes)
-    map_normals = map_planes[:, :3] / np.linalg.norm(map_planes[:, :3], axis=1, keepdims=True)
-    angle = np.degrees(np.arccos(np.clip(moved[:, :3] @ map_normals.T, -1.0, 1.0)))  # (P, Q)
+    map_planes = map_planes / np.linalg.norm(map_planes[:, :3], axis=1, keepdims=True)  # unit normals
+    angle = np.degrees(np.arccos(np.clip(moved[:, :3] @ map_planes[:, :3].T, -1.0, 1.0)))  # (P, Q)
     offset = np.abs(moved[:, 3][:, None] - map_planes[:, 3][None, :])
     candidate = (angle < angle_deg) & (offset < distance)
     frame_index, map_index = np.nonzero(candidate)
     cost = angle[candidate] / angle_deg + offset[candidate] / distance
-    order = np.lexsort((map_index, frame_index, cost))
+    # Costs equal up to rounding noise (arccos near 1 amplifies it) are ties, broken by index,
+    # so the order does not hinge on the last bits of a float.
+    order = np.lexsort((map_index, frame_index, np.round(cost, 6)))
     used_frame = np.zeros(len(frame_planes), dtype=bool)
     used_map = np.zeros(len(map_planes), dtype=bool)
     pairs = []
