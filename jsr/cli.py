@@ -158,7 +158,7 @@ def reconstruct(
     json_summary: bool = typer.Option(False, "--json", help="Print a one-line JSON summary on stdout."),
     verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="More log output (-v info, -vv debug)."),
 ) -> None:
-    """Reconstruct the static scene and every moving object of a sequence."""
+    """Reconstruct a sequence: camera trajectory, static map and its mesh (object maps: not yet built)."""
     from jsr.config import load_config
     from jsr.io.dataset import check_first_frame
     from jsr.io.run_folder import prepare_output_folder
