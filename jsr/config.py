@@ -127,6 +127,20 @@ class DetectionConfig:
 
     segment_outlier_ratio: float = 0.6
     min_segment_features: int = 5
+    merge_gap_pixels: int = 2
+    min_object_points: int = 15
+
+
+@dataclass
+class ObjectsConfig:
+    """Object maps: multi-group registration, classification and static-map hygiene."""
+
+    enabled: bool = True
+    segment_registration: str = "always"
+    segment_completion: bool = True
+    retire_object_matches: bool = True
+    retire_after_outliers: int = 3
+    reidentify: bool = True
 
 
 @dataclass
@@ -135,6 +149,11 @@ class VladConfig:
 
     vocabulary_size: int = 64
     candidate_segments: int = 3
+    max_pairs: int = 6
+    min_segment_points: int = 8
+    training_descriptors: int = 20000
+    kmeans_iterations: int = 30
+    normalization: str = "power"
 
 
 @dataclass
@@ -173,6 +192,7 @@ class Config:
     ransac: RansacConfig = field(default_factory=RansacConfig)
     keyframes: KeyframesConfig = field(default_factory=KeyframesConfig)
     detection: DetectionConfig = field(default_factory=DetectionConfig)
+    objects: ObjectsConfig = field(default_factory=ObjectsConfig)
     vlad: VladConfig = field(default_factory=VladConfig)
     bundle_adjustment: BundleAdjustmentConfig = field(default_factory=BundleAdjustmentConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
@@ -227,7 +247,15 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "keyframes.translation": (lambda v: v >= 0, "at least 0"),
     "keyframes.rotation_degrees": (lambda v: v >= 0, "at least 0"),
     "detection.segment_outlier_ratio": (lambda v: 0 < v <= 1, "in (0, 1]"),
+    "detection.min_segment_features": (lambda v: v >= 1, "at least 1"),
+    "detection.merge_gap_pixels": (lambda v: v >= 0, "at least 0"),
+    "detection.min_object_points": (lambda v: v >= 3, "at least 3"),
+    "objects.retire_after_outliers": (lambda v: v >= 0, "at least 0 (0: never)"),
     "vlad.vocabulary_size": (lambda v: v >= 2, "at least 2"),
+    "vlad.max_pairs": (lambda v: v >= 1, "at least 1"),
+    "vlad.min_segment_points": (lambda v: v >= 3, "at least 3"),
+    "vlad.training_descriptors": (lambda v: v >= 100, "at least 100"),
+    "vlad.kmeans_iterations": (lambda v: v >= 1, "at least 1"),
     "vlad.candidate_segments": (lambda v: v >= 1, "at least 1"),
     "bundle_adjustment.every_keyframes": (lambda v: v >= 1, "at least 1"),
     "bundle_adjustment.window_keyframes": (lambda v: v >= 2, "at least 2"),
@@ -242,6 +270,8 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
 
 _CHOICES: dict[str, tuple[str, ...]] = {
     "ransac.refinement": ("image", "euclidean"),
+    "objects.segment_registration": ("always", "fallback", "off"),
+    "vlad.normalization": ("power", "intra"),
 }
 
 

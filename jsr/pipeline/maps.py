@@ -66,6 +66,7 @@ class PointLandmarks:
         self._observations = _GrowableArray((), np.int64)
         self._colors = _GrowableArray((3,), np.uint8)
         self._active = _GrowableArray((), bool)
+        self._outlier_streak = _GrowableArray((), np.int64)
 
     def __len__(self) -> int:
         return len(self._positions)
@@ -76,6 +77,7 @@ class PointLandmarks:
     observations = property(lambda self: self._observations.view)
     colors = property(lambda self: self._colors.view)
     active = property(lambda self: self._active.view)
+    outlier_streak = property(lambda self: self._outlier_streak.view)  # (L,) frames in a row matched as an outlier
 
     @property
     def active_count(self) -> int:
@@ -89,6 +91,7 @@ class PointLandmarks:
         self._observations.extend(np.ones(len(ids), dtype=np.int64))
         self._colors.extend(colors)
         self._active.extend(np.ones(len(ids), dtype=bool))
+        self._outlier_streak.extend(np.zeros(len(ids), dtype=np.int64))
         return ids
 
     def fuse(self, ids: np.ndarray, positions: np.ndarray, descriptors: np.ndarray, sigmas: np.ndarray) -> None:

@@ -5,8 +5,12 @@
 1. extract measurements (points, planes, segments);
 2. register the frame against the static map (frame-based registration, Section 2.2.1),
    against the landmarks of the last N keyframes, or against the whole map after a loss;
-3. update the map when registration succeeded and the pose is new (Section 2.4);
-4. let bundle adjustment refine the map (asynchronously, applied at deterministic points).
+3. register it against every object map, frame-based and segment-based (Section 2.2);
+4. give every measurement to one map (Algorithm 1, Section 2.3);
+5. detect moving segments among the static map's outliers and start object maps (Section 2.1);
+6. update each map whose registration succeeded, when its pose is new (Section 2.4), and
+   retire static landmarks that turned out to belong to an object;
+7. let bundle adjustment refine the maps (asynchronously, applied at deterministic points).
 """
 
 from __future__ import annotations
@@ -23,9 +27,26 @@ from jsr.io.dataset import Frame
 from jsr.pipeline.bundle import BundleScheduler
 from jsr.pipeline.frontend import FrontEnd
 from jsr.pipeline.maps import Map
-from jsr.pipeline.matching import match_descriptors, match_planes
 from jsr.pipeline.measurements import FrameMeasurements
-from jsr.pipeline.registration import Correspondences, RegistrationResult, register
+from jsr.pipeline.association import (
+    MatchedFrame,
+    inlier_landmarks,
+    inlier_plane_landmarks,
+    match_frame_to_map,
+    sample_colors,
+)
+from jsr.pipeline.classify import ObjectRegistration, classify_measurements, segment_of_planes
+from jsr.pipeline.detection import detect_moving_segments, merge_adjacent_moving_segments
+from jsr.pipeline.objects import (
+    ObjectMap,
+    ObjectRegistrar,
+    ObjectTrackingResult,
+    complete_segments,
+    inlier_mask,
+    segment_vlads,
+)
+from jsr.pipeline.registration import RegistrationResult, register
+from jsr.pipeline.vlad import SegmentIndex, VladVocabulary
 
 logger = logging.getLogger(__name__)
 
@@ -65,102 +86,38 @@ class FrameReport:
     matches: int = 0
     inliers: int = 0
     reason: str = ""
+    objects_tracked: list[int] = field(default_factory=list)
+    objects_created: list[int] = field(default_factory=list)
+    mask: np.ndarray | None = field(default=None, repr=False)  # (H, W) uint8: 0 static, K object K
     maps: dict[str, MapCounts] = field(default_factory=dict)
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
-class MatchedFrame:
-    """Correspondences of a frame's measurements with a map's landmarks."""
+class StaticRegistration:
+    """The static map's registration of one frame (``matched`` is against the map, or against
+    the previous frame when ``bridged``)."""
 
-    correspondences: Correspondences
-    point_measurements: np.ndarray  # (K,) measurement index of each point correspondence, 3D ones first
-    point_landmarks: np.ndarray  # (K,) landmark id of each
-    is_3d: np.ndarray  # (K,) True for 3D-3D, False for 2D-3D
-    plane_measurements: np.ndarray  # (P,)
-    plane_landmarks: np.ndarray  # (P,)
+    matched: MatchedFrame
+    result: RegistrationResult
+    bridged: bool = False
 
 
-def match_frame_to_map(
-    measurements: FrameMeasurements,
-    target: Map,
-    landmark_ids: np.ndarray,
-    T_map_cam_predicted: np.ndarray | None,
-    config: Config,
-    focal_length: float | None = None,
-) -> MatchedFrame:
-    """Match all measurements of a frame with the landmarks ``landmark_ids`` of ``target``.
+@dataclass
+class FrameAssignment:
+    """Which map every measurement of a frame was given to (0: static, K: object K).
 
-    Points by SIFT descriptor (ratio test); planes by geometry under the predicted pose
-    (no planes are matched without a prediction). ``focal_length`` (pixels) turns on the
-    image-space pose refinement of :func:`~jsr.pipeline.registration.register`.
+    ``point_owner`` ``(N,)``, ``plane_owner`` ``(P,)``, ``segment_owner`` ``(S,)``.
     """
-    points = measurements.points
-    pairs = np.zeros((0, 2), dtype=np.int64)
-    if len(points) and len(landmark_ids):
-        pairs = match_descriptors(points.descriptors, target.points.descriptors[landmark_ids], config.matching.ratio_test)
-    measurement_ids = pairs[:, 0].astype(np.int64)
-    matched_landmarks = landmark_ids[pairs[:, 1]].astype(np.int64) if len(pairs) else np.zeros(0, dtype=np.int64)
-    is_3d = points.has_depth[measurement_ids]
-    order = np.argsort(~is_3d, kind="stable")  # 3D correspondences first
-    measurement_ids, matched_landmarks, is_3d = measurement_ids[order], matched_landmarks[order], is_3d[order]
 
-    plane_pairs = np.zeros((0, 2), dtype=np.int64)
-    planes = measurements.planes
-    if T_map_cam_predicted is not None and len(planes) and len(target.planes):
-        frame_planes = np.column_stack([planes.normals, planes.offsets])
-        plane_pairs = match_planes(
-            frame_planes,
-            target.planes.planes,
-            T_map_cam_predicted,
-            config.matching.plane_angle_degrees,
-            config.matching.plane_distance,
-        )
-    plane_measurements = plane_pairs[:, 0].astype(np.int64)
-    plane_landmarks = plane_pairs[:, 1].astype(np.int64)
-
-    three_d, two_d = measurement_ids[is_3d], measurement_ids[~is_3d]
-    correspondences = Correspondences(
-        frame_points=points.points[three_d],
-        map_points=target.points.positions[matched_landmarks[is_3d]],
-        frame_bearings=points.bearings[two_d],
-        map_points_2d=target.points.positions[matched_landmarks[~is_3d]],
-        frame_planes=np.column_stack([planes.normals, planes.offsets])[plane_measurements]
-        if len(plane_measurements)
-        else np.zeros((0, 4)),
-        map_planes=target.planes.planes[plane_landmarks] if len(plane_landmarks) else np.zeros((0, 4)),
-        point_depths=points.points[three_d, 2],
-        focal_length=focal_length,
-    )
-    return MatchedFrame(correspondences, measurement_ids, matched_landmarks, is_3d, plane_measurements, plane_landmarks)
-
-
-def inlier_landmarks(matched: MatchedFrame, result: RegistrationResult, num_points: int) -> np.ndarray:
-    """``(num_points,)`` landmark id of each point measurement that is a registration inlier, else -1."""
-    landmark_of = np.full(num_points, -1, dtype=np.int64)
-    inliers = np.concatenate([result.inliers_point3d, result.inliers_point2d]).astype(bool)
-    landmark_of[matched.point_measurements[inliers]] = matched.point_landmarks[inliers]
-    return landmark_of
-
-
-def inlier_plane_landmarks(matched: MatchedFrame, result: RegistrationResult, num_planes: int) -> np.ndarray:
-    """``(num_planes,)`` landmark id of each plane measurement that is an inlier, else -1."""
-    landmark_of = np.full(num_planes, -1, dtype=np.int64)
-    inliers = np.asarray(result.inliers_plane, dtype=bool)
-    landmark_of[matched.plane_measurements[inliers]] = matched.plane_landmarks[inliers]
-    return landmark_of
-
-
-def sample_colors(frame: Frame, pixels: np.ndarray) -> np.ndarray:
-    """``(N, 3)`` uint8 colours of the frame at ``(N, 2)`` pixel positions (nearest pixel)."""
-    height, width = frame.color.shape[:2]
-    u = np.clip(np.round(pixels[:, 0]).astype(int), 0, width - 1)
-    v = np.clip(np.round(pixels[:, 1]).astype(int), 0, height - 1)
-    return frame.color[v, u]
+    point_owner: np.ndarray
+    plane_owner: np.ndarray
+    segment_owner: np.ndarray
 
 
 class Reconstructor:
-    """Tracks the camera against a static map and grows the map, one frame at a time.
+    """Tracks the camera against a static map, detects and tracks moving objects in their
+    own maps, and grows every map, one frame at a time.
 
     Usage::
 
@@ -168,14 +125,18 @@ class Reconstructor:
         for frame in sequence:
             report = reconstructor.process(frame)
         reconstructor.finish()
+
+    ``init_object_mask`` ``(H, W)`` bool (optional) starts object map 1 on the first frame from
+    the segments inside the mask (the paper's manual start, for an object that has not moved).
     """
 
-    def __init__(self, config: Config, intrinsics: CameraIntrinsics):
+    def __init__(self, config: Config, intrinsics: CameraIntrinsics, init_object_mask: np.ndarray | None = None):
         self.config = config
         self.intrinsics = intrinsics
         self.rng = np.random.default_rng(config.seed)
         self.frontend = FrontEnd(config, intrinsics)
         self.static_map = Map(STATIC_MAP)
+        self.object_maps: list[ObjectMap] = []
         self.bundle = BundleScheduler(config.bundle_adjustment, config.noise, intrinsics.matrix)
         self.reports: list[FrameReport] = []
         self._last_pose: np.ndarray | None = None
@@ -188,18 +149,29 @@ class Reconstructor:
         self._focal_length = (
             0.5 * (intrinsics.fx + intrinsics.fy) if config.ransac.refinement == "image" else None
         )
+        self._init_object_mask = None if init_object_mask is None else np.asarray(init_object_mask, dtype=bool)
+        self.registrar = ObjectRegistrar(config, intrinsics, self.rng, self._focal_length)
+        self.vocabulary: VladVocabulary | None = None
+        self.segment_index = SegmentIndex()
+        # Per-frame ownership images of the frames that gave a keyframe to some map: the dense
+        # models fuse only the pixels each map received.
+        self.keyframe_masks: dict[int, np.ndarray] = {}
 
     @property
     def maps(self) -> list[Map]:
-        return [self.static_map]
+        return [self.static_map, *self.object_maps]
+
+    # ----------------------------------------------------------------------------------
+    # One frame
 
     def process(self, frame: Frame) -> FrameReport:
         """Process one frame; never raises for a frame that simply cannot be registered."""
         started = time.perf_counter()
         measurements = self.frontend.process(frame)
-        # A bundle adjustment started after the previous keyframe ran while the front-end
-        # worked; it is applied here, always at this point, so runs stay reproducible.
-        self.bundle.apply_finished(self.static_map, wait=True)
+        # Bundle adjustments started after earlier keyframes ran while the front-end worked;
+        # they are applied here, always at this point, so runs stay reproducible.
+        for map_ in self.maps:
+            self.bundle.apply_finished(map_, wait=True)
         if self.reports and self._last_pose is not None and self.reports[-1].tracked:
             # bundle adjustment may have moved the keyframe the last pose hangs from
             self._last_pose = self.current_pose(self.reports[-1])
@@ -207,44 +179,106 @@ class Reconstructor:
         report = FrameReport(frame.index, frame.timestamp, frame.name, tracked=False, T_w_c=None)
 
         if not self.static_map.keyframes:
-            self._initialise(frame, measurements, report)
+            assignment = self._initialise(frame, measurements, report)
         else:
-            self._track(frame, measurements, report, timings)
+            assignment = self._process_tracking(frame, measurements, report, timings)
 
         if report.tracked and self.static_map.keyframes:
             reference = self.static_map.keyframes[-1]
             report.reference_keyframe = reference.keyframe_id
             report.T_keyframe_cam = np.linalg.inv(reference.T_map_cam) @ report.T_w_c
-        report.maps = {m.name: MapCounts(len(m.keyframes), m.points.active_count, len(m.planes), report.tracked)
-                       for m in self.maps}
+        report.mask = self._ownership_image(measurements, assignment)
+        if report.new_keyframe or report.objects_created or any(
+                m.keyframes and m.keyframes[-1].frame_index == frame.index for m in self.object_maps):
+            self.keyframe_masks[frame.index] = report.mask
+        report.maps = {STATIC_MAP: MapCounts(len(self.static_map.keyframes), self.static_map.points.active_count,
+                                             len(self.static_map.planes), report.tracked)}
+        for object_map in self.object_maps:
+            report.maps[object_map.name] = MapCounts(
+                len(object_map.keyframes), object_map.points.active_count, len(object_map.planes),
+                object_map.object_id in report.objects_tracked)
         timings["frame_total"] = (time.perf_counter() - started) * 1000.0
         report.timings_ms = timings
         self.reports.append(report)
         return report
 
-    def _initialise(self, frame: Frame, measurements: FrameMeasurements, report: FrameReport) -> None:
-        """The first frame with enough 3D points defines the world frame and the static map."""
-        points = measurements.points
+    def _process_tracking(self, frame: Frame, measurements: FrameMeasurements, report: FrameReport,
+                          timings: dict) -> FrameAssignment:
+        static = self._register_static(frame, measurements, report, timings)
+        objects_on = self.config.objects.enabled
+        tic = time.perf_counter()
+        tracked_objects = self._register_objects(measurements, report, static) if objects_on else []
+        timings["objects"] = (time.perf_counter() - tic) * 1000.0
+        assignment = self._classify(measurements, static, tracked_objects)
+        if objects_on and static is not None:
+            tic = time.perf_counter()
+            self._detect(frame, measurements, report, static, tracked_objects, assignment)
+            timings["detection"] = (time.perf_counter() - tic) * 1000.0
+        tic = time.perf_counter()
+        if static is not None:
+            self._update_static(frame, measurements, report, static, assignment)
+            self._retire_static_landmarks(static, assignment)
+        for outcome in tracked_objects:
+            self._update_object(frame, measurements, report, outcome, assignment)
+        timings["map_update"] = (time.perf_counter() - tic) * 1000.0
+        return assignment
+
+    # ----------------------------------------------------------------------------------
+    # Start
+
+    def _initialise(self, frame: Frame, measurements: FrameMeasurements, report: FrameReport) -> FrameAssignment:
+        """The first frame with enough 3D points defines the world frame and the static map
+        (and object map 1 when an initial object mask was given)."""
+        points, planes, segments = measurements.points, measurements.planes, measurements.segments
+        assignment = FrameAssignment(np.zeros(len(points), dtype=np.int64), np.zeros(len(planes), dtype=np.int64),
+                                     np.zeros(len(segments), dtype=np.int64))
         if int(points.has_depth.sum()) < self.config.ransac.min_matches:
             report.reason = "too few 3D points to start the map"
-            return
+            return assignment
         pose = np.eye(4)
-        indices = np.arange(len(points))
+        if self._init_object_mask is not None:
+            object_segments = self._segments_in_mask(measurements, self._init_object_mask)
+            if object_segments:
+                object_map = self._start_object(frame, measurements, object_segments, pose, assignment)
+                if object_map is not None:
+                    report.objects_created.append(object_map.object_id)
+                    report.objects_tracked.append(object_map.object_id)
+            else:
+                logger.warning("the initial object mask covers no segment of frame %d; no object map started",
+                               frame.index)
+        static_points = np.flatnonzero(assignment.point_owner == 0)
+        static_planes = np.flatnonzero(assignment.plane_owner == 0)
         self.static_map.add_keyframe(
-            frame.index, frame.timestamp, pose, points, indices, np.full(len(points), -1),
-            sample_colors(frame, points.pixels), measurements.planes, np.arange(len(measurements.planes)),
-            np.full(len(measurements.planes), -1),
+            frame.index, frame.timestamp, pose, points, static_points, np.full(len(static_points), -1),
+            sample_colors(frame, points.pixels[static_points]), planes, static_planes,
+            np.full(len(static_planes), -1),
         )
         report.tracked, report.T_w_c, report.new_keyframe = True, pose, True
         self._last_pose = pose
         self._previous = (measurements, pose)
+        return assignment
+
+    def _segments_in_mask(self, measurements: FrameMeasurements, mask: np.ndarray) -> list[int]:
+        """Segments with at least half of their pixels inside ``mask`` ``(H, W)`` bool."""
+        labels = measurements.segments.label_image
+        if mask.shape != labels.shape:
+            raise ValueError(f"initial object mask is {mask.shape[1]}x{mask.shape[0]} but frames are "
+                             f"{labels.shape[1]}x{labels.shape[0]}")
+        inside = np.bincount(labels[mask & (labels >= 0)], minlength=len(measurements.segments))
+        total = np.maximum(np.asarray(measurements.segments.pixel_counts), 1)
+        return np.flatnonzero(inside >= 0.5 * total).tolist()
+
+    # ----------------------------------------------------------------------------------
+    # Static map registration
 
     def _predicted_pose(self) -> np.ndarray | None:
         if self._last_pose is None:
             return None
         return self._last_pose @ self._velocity  # constant velocity in the camera frame
 
-    def _track(self, frame: Frame, measurements: FrameMeasurements, report: FrameReport, timings: dict) -> None:
+    def _register_static(self, frame: Frame, measurements: FrameMeasurements, report: FrameReport,
+                         timings: dict) -> StaticRegistration | None:
+        """Frame-based registration against the static map; sets the report's pose."""
         config = self.config
         relocalise = self._lost
         predicted = None if relocalise else self._predicted_pose()
@@ -281,7 +315,7 @@ class Reconstructor:
                                      initial_guess=predicted)
             registration_ms += (time.perf_counter() - tic) * 1000.0
             if bridge_result.success:
-                result, bridged = bridge_result, True
+                matched, result, bridged = bridge, bridge_result, True
                 self.frames_bridged += 1
         timings["matching"], timings["registration"] = matching_ms, registration_ms
         report.matches, report.inliers = result.num_matches, result.num_inliers
@@ -292,10 +326,10 @@ class Reconstructor:
             self._lost = True
             self._previous = None
             logger.info("frame %d: static registration failed (%s)", frame.index, result.reason)
-            return
+            return None
 
         pose = result.transformation
-        report.tracked, report.T_w_c, report.relocalised = True, pose, relocalise
+        report.tracked, report.T_w_c, report.relocalised, report.bridged = True, pose, relocalise, bridged
         if self._last_pose is not None and not relocalise:
             self._velocity = np.linalg.inv(self._last_pose) @ pose
         else:
@@ -303,25 +337,346 @@ class Reconstructor:
         self._last_pose = pose
         self._lost = False
         self._previous = (measurements, pose)
-        report.bridged = bridged
+        return StaticRegistration(matched, result, bridged)
 
-        tic = time.perf_counter()
-        if bridged or self.static_map.needs_keyframe(pose, config.keyframes):
-            points = measurements.points
-            if bridged:  # matched to the previous frame, not to the map: all measurements are new
-                landmark_of = np.full(len(points), -1, dtype=np.int64)
-                plane_landmark_of = np.full(len(measurements.planes), -1, dtype=np.int64)
-            else:
-                landmark_of = inlier_landmarks(matched, result, len(points))
-                plane_landmark_of = inlier_plane_landmarks(matched, result, len(measurements.planes))
-            self.static_map.add_keyframe(
-                frame.index, frame.timestamp, pose, points, np.arange(len(points)), landmark_of,
-                sample_colors(frame, points.pixels), measurements.planes, np.arange(len(measurements.planes)),
-                plane_landmark_of,
-            )
-            report.new_keyframe = True
-            self.bundle.maybe_start(self.static_map)
-        timings["map_update"] = (time.perf_counter() - tic) * 1000.0
+    # ----------------------------------------------------------------------------------
+    # Object maps: registration, classification, detection
+
+    def _register_objects(self, measurements: FrameMeasurements, report: FrameReport,
+                          static: StaticRegistration | None) -> list[ObjectTrackingResult]:
+        """Frame- and segment-based registration of the frame against every object map."""
+        if not self.object_maps:
+            return []
+        vlads = None
+        if self.config.objects.segment_registration != "off" and self.vocabulary is not None:
+            vlads = segment_vlads(self.vocabulary, measurements)
+        skip = self._static_segments(measurements, static)
+        outcomes = []
+        for object_map in self.object_maps:
+            predicted = object_map.last_T_o_c
+            if report.tracked and object_map.last_T_w_o is not None:
+                # The object most often stays where it was: predict it there, seen from this camera.
+                predicted = np.linalg.inv(object_map.last_T_w_o) @ report.T_w_c
+            outcome = self.registrar.register_object(measurements, vlads, object_map, self.segment_index, predicted,
+                                                     skip)
+            outcomes.append(outcome)
+            logger.debug(
+                "frame %d: object %d frame-based %s (%d matches, %d inliers), segment-based %s (%d pairs)",
+                measurements.frame_index, object_map.object_id, outcome.frame_success,
+                outcome.frame_result.num_matches, outcome.frame_result.num_inliers, outcome.segment_success,
+                outcome.segment_pairs_tried)
+            if not outcome.success:
+                if not object_map.lost:
+                    logger.info("frame %d: object %d not found", measurements.frame_index, object_map.object_id)
+                object_map.lost = True
+        return outcomes
+
+    def _static_segments(self, measurements: FrameMeasurements, static: StaticRegistration | None) -> np.ndarray:
+        """``(S,)`` bool: segments whose matched features clearly follow the static map (they
+        are not tried in segment-based registration, which saves most of its RANSAC runs)."""
+        segments = measurements.segments
+        if static is None or static.bridged:
+            return np.zeros(len(segments), dtype=bool)
+        num_points = len(measurements.points)
+        matched = np.zeros(num_points, dtype=bool)
+        matched[static.matched.point_measurements] = True
+        inliers, _ = inlier_mask(static.matched, static.result, num_points, len(measurements.planes))
+        from jsr.pipeline.detection import segment_outlier_stats
+
+        stats = segment_outlier_stats(segments, matched, inliers)
+        detection = self.config.detection
+        return (stats.matched >= detection.min_segment_features) & (
+            stats.outlier_ratio <= 0.5 * detection.segment_outlier_ratio)
+
+    def _classify(self, measurements: FrameMeasurements, static: StaticRegistration | None,
+                  outcomes: list[ObjectTrackingResult]) -> FrameAssignment:
+        """Algorithm 1 (lines 14-24), then segment completion (``objects.segment_completion``)."""
+        points, planes, segments = measurements.points, measurements.planes, measurements.segments
+        num_points, num_planes = len(points), len(planes)
+        point_segment = segments.segment_of_points(num_points)
+        plane_segment = segment_of_planes(segments, num_planes)
+        registrations = []
+        for outcome in outcomes:
+            frame_points, frame_planes = inlier_mask(outcome.frame_matched, outcome.frame_result, num_points,
+                                                     num_planes)
+            segment_points, segment_planes = inlier_mask(outcome.segment_matched, outcome.segment_result,
+                                                         num_points, num_planes)
+            registrations.append(ObjectRegistration(
+                object_id=outcome.object_map.object_id,
+                frame_success=outcome.frame_success,
+                frame_inliers_points=frame_points,
+                frame_inliers_planes=frame_planes,
+                segment_success=outcome.segment_success,
+                matching_segments=list(outcome.seed_segments),
+                segment_inliers_points=segment_points,
+                segment_inliers_planes=segment_planes,
+            ))
+        point_owner, plane_owner = classify_measurements(num_points, num_planes, point_segment, plane_segment,
+                                                         registrations)
+        segment_owner = np.zeros(len(segments), dtype=np.int64)
+        tracked = [r for r in registrations if r.frame_success or r.segment_success]
+        if tracked and self.config.objects.segment_completion:
+            # Evidence: points that are inliers of the registration of the map they were given to.
+            evidence = np.zeros(num_points, dtype=bool)
+            if static is not None:
+                static_inliers, _ = inlier_mask(static.matched, static.result, num_points, num_planes)
+                evidence |= static_inliers & (point_owner == 0)
+            for r in tracked:
+                evidence |= (point_owner == r.object_id) & (r.frame_inliers_points | r.segment_inliers_points)
+            segment_owner = complete_segments(point_segment, len(segments), point_owner, evidence,
+                                              [r.object_id for r in tracked], self.config.detection.min_segment_features)
+            # Features and planes inside an object's segment go to that object, matched or not:
+            # new views of the object grow its map instead of leaking into the static map.
+            in_object_segment = (point_segment >= 0) & (segment_owner[np.maximum(point_segment, 0)] > 0)
+            point_owner = np.where(in_object_segment, segment_owner[np.maximum(point_segment, 0)], point_owner)
+            plane_in_object = (plane_segment >= 0) & (segment_owner[np.maximum(plane_segment, 0)] > 0)
+            plane_owner = np.where(plane_in_object, segment_owner[np.maximum(plane_segment, 0)], plane_owner)
+        for r in tracked:  # the seed segments of segment-based registration belong to their object
+            for segment in r.matching_segments if r.segment_success else []:
+                segment_owner[segment] = r.object_id
+        return FrameAssignment(point_owner.astype(np.int64), plane_owner.astype(np.int64), segment_owner)
+
+    def _detect(self, frame: Frame, measurements: FrameMeasurements, report: FrameReport,
+                static: StaticRegistration, outcomes: list[ObjectTrackingResult], assignment: FrameAssignment) -> None:
+        """Section 2.1: segments mostly made of static-map outliers are moving regions. Each
+        group of touching moving segments is first registered against the existing object maps
+        (an object seen again, elsewhere); if none fits, it starts a new object map."""
+        if static.bridged:
+            return  # matched against the previous frame only: outliers say nothing about motion
+        points, segments = measurements.points, measurements.segments
+        num_points = len(points)
+        matched = np.zeros(num_points, dtype=bool)
+        matched[static.matched.point_measurements] = True
+        inliers, _ = inlier_mask(static.matched, static.result, num_points, len(measurements.planes))
+        moving = detect_moving_segments(segments, matched, inliers, self.config.detection,
+                                        exclude=assignment.point_owner > 0)
+        moving = [s for s in moving if assignment.segment_owner[s] == 0]
+        if not moving:
+            return
+        groups = merge_adjacent_moving_segments(segments, moving, self.config.detection.merge_gap_pixels)
+        by_id = {outcome.object_map.object_id: outcome for outcome in outcomes}
+        for group in groups:
+            group_points = np.concatenate([segments.point_indices[s] for s in group]).astype(np.int64)
+            group_points = group_points[assignment.point_owner[group_points] == 0]
+            if int(points.has_depth[group_points].sum()) < self.config.detection.min_object_points:
+                continue
+            if self.config.objects.reidentify and self._reidentify(measurements, group, group_points, by_id,
+                                                                   assignment):
+                continue
+            object_map = self._start_object(frame, measurements, group, report.T_w_c, assignment)
+            if object_map is not None:
+                report.objects_created.append(object_map.object_id)
+                report.objects_tracked.append(object_map.object_id)
+
+    def _reidentify(self, measurements: FrameMeasurements, group: list[int], group_points: np.ndarray,
+                    outcomes: dict[int, ObjectTrackingResult], assignment: FrameAssignment) -> bool:
+        """Register a moving region against every object map not tracked in this frame, whole
+        map and no prediction; on success the region is that object (it is tracked again)."""
+        for object_map in self.object_maps:
+            outcome = outcomes.get(object_map.object_id)
+            if outcome is None or outcome.success:
+                continue
+            matched = match_frame_to_map(measurements, object_map, np.flatnonzero(object_map.points.active), None,
+                                         self.config, self._focal_length, point_measurements=group_points)
+            result = register(matched.correspondences, self.config.ransac, self.config.noise, self.rng)
+            if not result.success:
+                continue
+            logger.info("frame %d: moving region %s is object %d again", measurements.frame_index, group,
+                        object_map.object_id)
+            outcome.frame_matched, outcome.frame_result = matched, result
+            segment_members = np.zeros(len(measurements.segments), dtype=bool)
+            segment_members[group] = True
+            assignment.segment_owner[group] = object_map.object_id
+            point_segment = measurements.segments.segment_of_points(len(measurements.points))
+            in_group = (point_segment >= 0) & segment_members[np.maximum(point_segment, 0)]
+            assignment.point_owner[in_group & (assignment.point_owner == 0)] = object_map.object_id
+            plane_segment = segment_of_planes(measurements.segments, len(measurements.planes))
+            plane_in_group = (plane_segment >= 0) & segment_members[np.maximum(plane_segment, 0)]
+            assignment.plane_owner[plane_in_group & (assignment.plane_owner == 0)] = object_map.object_id
+            return True
+        return False
+
+    def _ensure_vocabulary(self, measurements: FrameMeasurements) -> None:
+        """Train the VLAD vocabulary once, on the static map's descriptors (and this frame's)."""
+        if self.vocabulary is not None:
+            return
+        config = self.config.vlad
+        descriptors = np.concatenate([self.static_map.points.descriptors, measurements.points.descriptors])
+        rng = np.random.default_rng(self.config.seed)  # its own stream: RANSAC draws stay unchanged
+        if len(descriptors) > config.training_descriptors:
+            descriptors = descriptors[np.sort(rng.choice(len(descriptors), config.training_descriptors, replace=False))]
+        self.vocabulary = VladVocabulary.train(descriptors, config.vocabulary_size, rng, config.kmeans_iterations,
+                                               config.normalization)
+        logger.info("VLAD vocabulary of %d words trained on %d descriptors", self.vocabulary.size, len(descriptors))
+
+    def _start_object(self, frame: Frame, measurements: FrameMeasurements, segment_ids: list[int],
+                      T_w_c: np.ndarray, assignment: FrameAssignment) -> ObjectMap | None:
+        """A new object map from the given segments; its frame is this camera frame."""
+        segments, points, planes = measurements.segments, measurements.points, measurements.planes
+        members = np.zeros(len(segments), dtype=bool)
+        members[segment_ids] = True
+        point_segment = segments.segment_of_points(len(points))
+        point_ids = np.flatnonzero((point_segment >= 0) & members[np.maximum(point_segment, 0)]
+                                   & (assignment.point_owner == 0) & points.has_depth)
+        plane_segment = segment_of_planes(segments, len(planes))
+        plane_ids = np.flatnonzero((plane_segment >= 0) & members[np.maximum(plane_segment, 0)]
+                                   & (assignment.plane_owner == 0))
+        if len(point_ids) < min(self.config.detection.min_object_points, self.config.ransac.min_matches):
+            return None
+        object_id = len(self.object_maps) + 1
+        object_map = ObjectMap(object_id, frame.index)
+        keyframe = object_map.add_keyframe(
+            frame.index, frame.timestamp, np.eye(4), points, point_ids, np.full(len(point_ids), -1),
+            sample_colors(frame, points.pixels[point_ids]), planes, plane_ids, np.full(len(plane_ids), -1))
+        assignment.point_owner[point_ids] = object_id
+        assignment.plane_owner[plane_ids] = object_id
+        assignment.segment_owner[segment_ids] = object_id
+        self.object_maps.append(object_map)
+        self._ensure_vocabulary(measurements)
+        self._index_segments(object_map, keyframe, measurements, segment_ids)
+        object_map.last_T_o_c = np.eye(4)
+        object_map.last_T_w_o = np.array(T_w_c, dtype=float)
+        object_map.trajectory.append((frame.index, frame.timestamp, object_map.last_T_w_o))
+        object_map.frames_tracked = 1
+        logger.info("frame %d: object %d detected (%d segments, %d points, %d planes)", frame.index, object_id,
+                    len(segment_ids), len(point_ids), len(plane_ids))
+        return object_map
+
+    def _index_segments(self, object_map: ObjectMap, keyframe, measurements: FrameMeasurements,
+                        segment_ids) -> None:
+        """Store the VLAD and landmark ids of every segment an object keyframe received."""
+        if self.vocabulary is None:
+            return
+        landmark_of = np.full(len(measurements.points), -1, dtype=np.int64)
+        landmark_of[keyframe.point_measurements] = keyframe.point_landmarks
+        for segment in segment_ids:
+            indices = np.asarray(measurements.segments.point_indices[segment], dtype=np.int64)
+            landmarks = landmark_of[indices]
+            landmarks = np.unique(landmarks[landmarks >= 0])
+            if len(landmarks) < self.config.vlad.min_segment_points:
+                continue
+            key = (keyframe.keyframe_id, int(segment))
+            object_map.segment_landmarks[key] = landmarks
+            self.segment_index.add(object_map.object_id, key,
+                                   self.vocabulary.encode(object_map.points.descriptors[landmarks]))
+
+    # ----------------------------------------------------------------------------------
+    # Map updates
+
+    def _update_static(self, frame: Frame, measurements: FrameMeasurements, report: FrameReport,
+                       static: StaticRegistration, assignment: FrameAssignment) -> None:
+        """Add a keyframe to the static map (its own measurements only) when the pose is new."""
+        pose = report.T_w_c
+        if not (static.bridged or self.static_map.needs_keyframe(pose, self.config.keyframes)):
+            return
+        points, planes = measurements.points, measurements.planes
+        static_points = np.flatnonzero(assignment.point_owner == 0)
+        static_planes = np.flatnonzero(assignment.plane_owner == 0)
+        if static.bridged:  # matched to the previous frame, not to the map: all measurements are new
+            landmark_of = np.full(len(points), -1, dtype=np.int64)
+            plane_landmark_of = np.full(len(planes), -1, dtype=np.int64)
+        else:
+            landmark_of = inlier_landmarks(static.matched, static.result, len(points))
+            plane_landmark_of = inlier_plane_landmarks(static.matched, static.result, len(planes))
+        self.static_map.add_keyframe(
+            frame.index, frame.timestamp, pose, points, static_points, landmark_of[static_points],
+            sample_colors(frame, points.pixels[static_points]), planes, static_planes,
+            plane_landmark_of[static_planes],
+        )
+        report.new_keyframe = True
+        self.bundle.maybe_start(self.static_map)
+
+    def _retire_static_landmarks(self, static: StaticRegistration, assignment: FrameAssignment) -> None:
+        """Static-map hygiene: landmarks the static map took from an object (before it moved)
+        would keep pulling the camera. A landmark matched to a measurement that went to an
+        object, or matched as an outlier in several frames in a row, is retired."""
+        if static.bridged:
+            return
+        config = self.config.objects
+        matched = static.matched
+        landmarks = matched.point_landmarks
+        if not len(landmarks):
+            return
+        result = static.result
+        inlier = np.concatenate([result.inliers_point3d, result.inliers_point2d]).astype(bool)
+        streak = self.static_map.points.outlier_streak
+        streak[landmarks[inlier]] = 0
+        streak[landmarks[~inlier]] += 1
+        retire = np.zeros(len(landmarks), dtype=bool)
+        if config.enabled and config.retire_object_matches:
+            retire |= assignment.point_owner[matched.point_measurements] > 0
+        if config.retire_after_outliers > 0:
+            retire |= streak[landmarks] >= config.retire_after_outliers
+        retired = landmarks[retire & self.static_map.points.active[landmarks]]
+        if len(retired):
+            self.static_map.points.retire(retired)
+            logger.debug("static map: %d landmarks retired", len(retired))
+
+    def _update_object(self, frame: Frame, measurements: FrameMeasurements, report: FrameReport,
+                       outcome: ObjectTrackingResult, assignment: FrameAssignment) -> None:
+        """Record the object's pose and add a keyframe when the object-relative view is new."""
+        object_map = outcome.object_map
+        best = outcome.best
+        if best is None:
+            return
+        matched, result = best
+        T_o_c = result.transformation
+        object_map.lost = False
+        object_map.last_T_o_c = T_o_c
+        object_map.frames_tracked += 1
+        report.objects_tracked.append(object_map.object_id)
+        if report.tracked:
+            T_w_o = report.T_w_c @ np.linalg.inv(T_o_c)
+            object_map.last_T_w_o = T_w_o
+            object_map.trajectory.append((frame.index, frame.timestamp, T_w_o))
+        if not object_map.needs_keyframe(T_o_c, self.config.keyframes):
+            return
+        points, planes = measurements.points, measurements.planes
+        own_points = np.flatnonzero(assignment.point_owner == object_map.object_id)
+        own_planes = np.flatnonzero(assignment.plane_owner == object_map.object_id)
+        landmark_of = inlier_landmarks(matched, result, len(points))
+        plane_landmark_of = inlier_plane_landmarks(matched, result, len(planes))
+        keyframe = object_map.add_keyframe(
+            frame.index, frame.timestamp, T_o_c, points, own_points, landmark_of[own_points],
+            sample_colors(frame, points.pixels[own_points]), planes, own_planes, plane_landmark_of[own_planes])
+        own_segments = np.flatnonzero(assignment.segment_owner == object_map.object_id)
+        self._index_segments(object_map, keyframe, measurements, own_segments)
+        self.bundle.maybe_start(object_map)
+
+    # ----------------------------------------------------------------------------------
+    # Outputs
+
+    def _ownership_image(self, measurements: FrameMeasurements, assignment: FrameAssignment) -> np.ndarray:
+        """``(H, W)`` uint8: 0 static, K for the pixels of the segments and features of object K."""
+        labels = measurements.segments.label_image
+        image = np.zeros(labels.shape, dtype=np.uint8)
+        if not np.any(assignment.segment_owner > 0) and not np.any(assignment.point_owner > 0):
+            return image
+        owner_of_label = np.append(assignment.segment_owner, 0).astype(np.uint8)  # label -1 -> static
+        image = owner_of_label[np.where(labels >= 0, labels, len(assignment.segment_owner))]
+        object_points = np.flatnonzero(assignment.point_owner > 0)
+        if len(object_points):
+            height, width = labels.shape
+            pixels = np.round(measurements.points.pixels[object_points]).astype(int)
+            u, v = np.clip(pixels[:, 0], 0, width - 1), np.clip(pixels[:, 1], 0, height - 1)
+            image[v, u] = assignment.point_owner[object_points].astype(np.uint8)
+        return image
+
+    def keyframe_pixel_mask(self, map_: Map, keyframe_id: int) -> np.ndarray | None:
+        """``(H, W)`` bool: the pixels of a keyframe that were given to ``map_`` (for TSDF fusion)."""
+        frame_index = map_.keyframes[keyframe_id].frame_index
+        ownership = self.keyframe_masks.get(frame_index)
+        if ownership is None:
+            return None
+        owner = map_.object_id if isinstance(map_, ObjectMap) else 0
+        return ownership == owner
+
+    def object_pose(self, object_map: ObjectMap, frame_index: int) -> np.ndarray | None:
+        """``T_w_o`` of an object at a frame where it was tracked, else None."""
+        for index, _, T_w_o in object_map.trajectory:
+            if index == frame_index:
+                return T_w_o
+        return None
 
     def current_pose(self, report: FrameReport) -> np.ndarray | None:
         """``T_w_c`` of a tracked frame with the latest keyframe poses (after bundle adjustment)."""
@@ -341,8 +696,9 @@ class Reconstructor:
         return previous
 
     def finish(self) -> None:
-        """Wait for and apply the last bundle adjustment."""
-        self.bundle.finish(self.static_map)
+        """Wait for and apply the last bundle adjustments."""
+        for map_ in self.maps:
+            self.bundle.finish(map_)
 
     def close(self) -> None:
         """Stop the worker threads (front-end and bundle adjustment); the maps stay usable."""
