@@ -138,7 +138,8 @@ SEQUENCE_HELP = "Sequence folder: TUM RGB-D layout (rgb.txt, depth.txt) or a set
 
 @app.command(
     epilog="Examples:\n\n  jsr reconstruct sample_data --out results/\n\n"
-    "  jsr reconstruct seq/ --out runs/a --set ransac.min_inlier_ratio=0.5 --max-frames 200 -q --json"
+    "  jsr reconstruct seq/ --out runs/a --set ransac.min_inlier_ratio=0.5 --max-frames 200 -q --json\n\n"
+    "  jsr reconstruct scene3/ --out runs/s3 --init-box 200,150,320,260 --save-masks"
 )
 @_user_errors
 def reconstruct(
@@ -157,8 +158,14 @@ def reconstruct(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar or table; errors only."),
     json_summary: bool = typer.Option(False, "--json", help="Print a one-line JSON summary on stdout."),
     verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="More log output (-v info, -vv debug)."),
+    save_masks: bool = typer.Option(False, "--save-masks", help="Write masks/<frame>.png: 0 static, K object K."),
+    init_object: Optional[Path] = typer.Option(
+        None, "--init-object", help="PNG mask (non-zero = object) on the first frame: start object 1 there."),
+    init_box: Optional[str] = typer.Option(
+        None, "--init-box", help="Pixel box X0,Y0,X1,Y1 on the first frame: start object 1 there."),
 ) -> None:
-    """Reconstruct a sequence: camera trajectory, static map and its mesh (object maps: not yet built)."""
+    """Reconstruct a sequence: camera trajectory, static map, and a map and trajectory for
+    every moving object, with their meshes."""
     from jsr.config import load_config
     from jsr.io.dataset import check_first_frame
     from jsr.io.run_folder import prepare_output_folder
@@ -166,7 +173,8 @@ def reconstruct(
     _configure_logging(verbose, quiet)
     config = load_config(config_file, overrides)
     data = _open_sequence(sequence, config, camera, preset, start, max_frames, stride)
-    check_first_frame(data)
+    first = check_first_frame(data)
+    init_mask = _initial_object_mask(init_object, init_box, first.depth.shape)
     out_dir = prepare_output_folder(out, overwrite)
 
     from jsr.pipeline.run import run_reconstruction
@@ -181,16 +189,18 @@ def reconstruct(
             maps = report.maps
             static = maps.get("static")
             objects = sum(1 for name in maps if name != "static")
+            tracked = len(report.objects_tracked)
             state = "" if report.tracked else " [yellow]lost[/]"
             progress.update(
                 task,
                 completed=done,
                 rate=f"{done / max(elapsed, 1e-9):.1f} fps | static kf {static.keyframes if static else 0} "
-                f"pts {static.point_landmarks if static else 0} | objects {objects}{state}",
+                f"pts {static.point_landmarks if static else 0} | objects {objects} ({tracked} seen){state}",
             )
 
         try:
-            summary = run_reconstruction(data, config, out_dir, on_frame=on_frame)
+            summary = run_reconstruction(data, config, out_dir, on_frame=on_frame, save_masks=save_masks,
+                                         init_object_mask=init_mask)
         except KeyboardInterrupt:
             console.print(f"[yellow]interrupted[/]: results of the frames done are in {out_dir}")
             raise typer.Exit(EXIT_INTERRUPTED)
@@ -200,6 +210,47 @@ def reconstruct(
         _print_run_summary(summary, out_dir)
 
 
+def _initial_object_mask(mask_file: Optional[Path], box: Optional[str], shape: tuple[int, int]):
+    """The ``(H, W)`` bool mask of ``--init-object`` or ``--init-box`` (None without either)."""
+    from jsr.errors import InputError
+
+    if mask_file is not None and box is not None:
+        raise InputError("give --init-object or --init-box, not both")
+    height, width = shape
+    if box is not None:
+        try:
+            x0, y0, x1, y1 = (int(v) for v in box.split(","))
+        except ValueError:
+            raise InputError(f"--init-box must be four integers X0,Y0,X1,Y1, got '{box}'") from None
+        x0, x1 = sorted((max(0, x0), min(width, x1)))
+        y0, y1 = sorted((max(0, y0), min(height, y1)))
+        if x1 - x0 < 2 or y1 - y0 < 2:
+            raise InputError(f"--init-box {box} leaves no pixels inside the {width}x{height} image")
+        import numpy as np
+
+        mask = np.zeros(shape, dtype=bool)
+        mask[y0:y1, x0:x1] = True
+        return mask
+    if mask_file is None:
+        return None
+    import cv2
+    import numpy as np
+
+    if not Path(mask_file).is_file():
+        raise InputError(f"initial object mask {mask_file} does not exist")
+    image = cv2.imread(str(mask_file), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise InputError(f"initial object mask {mask_file} is not a readable image")
+    if image.ndim == 3:
+        image = image.max(axis=2)
+    if image.shape != shape:
+        raise InputError(f"initial object mask {mask_file} is {image.shape[1]}x{image.shape[0]} but the frames are "
+                         f"{width}x{height}")
+    if not np.any(image > 0):
+        raise InputError(f"initial object mask {mask_file} has no non-zero pixel")
+    return image > 0
+
+
 def _print_run_summary(summary: dict, out_dir: Path) -> None:
     table = Table(title=f"jsr reconstruct: {summary['frames_processed']} frames, {summary['fps']:.2f} fps")
     for column in ("map", "keyframes", "point landmarks", "plane landmarks"):
@@ -207,6 +258,9 @@ def _print_run_summary(summary: dict, out_dir: Path) -> None:
     for name, counts in summary["maps"].items():
         table.add_row(name, str(counts["keyframes"]), str(counts["point_landmarks"]), str(counts["plane_landmarks"]))
     console.print(table)
+    for item in summary.get("objects", []):
+        console.print(f"object {item['id']}: detected at frame {item['created_at_frame']}, "
+                      f"tracked in {item['frames_tracked']} frames")
     console.print(
         f"tracked {summary['frames_tracked']} of {summary['frames_processed']} frames "
         f"({summary['frames_lost']} lost, {summary['relocalisations']} relocalisations); results in {out_dir}"

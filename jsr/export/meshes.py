@@ -110,7 +110,9 @@ def write_dense_models(reconstructor, sequence: RGBDSequence, config: Config, ou
     for map_ in reconstructor.maps:
         if not map_.keyframes:
             continue
-        folder = Path(out_dir) / map_.name
+        from jsr.pipeline.run import map_folder
+
+        folder = Path(out_dir) / map_folder(map_)
         mask_of = getattr(reconstructor, "keyframe_pixel_mask", None)
         mesh, cloud = fuse_keyframes(
             map_,

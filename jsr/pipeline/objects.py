@@ -264,3 +264,134 @@ def complete_segments(
     wins = (best_votes >= min_votes) & (best_votes > others)
     ids = np.array([0] + list(object_ids), dtype=np.int64)
     return np.where(wins, ids[best_object], 0)
+
+
+def depth_adjacent_segments(label_image: np.ndarray, depth: np.ndarray, noise, segments_config,
+                            max_gap_pixels: int = 3, min_boundary_pixels: int = 10) -> np.ndarray:
+    """``(E, 2)`` pairs ``(a, b)``, ``a < b``, of segments that touch *in 3D*: along at least
+    ``min_boundary_pixels`` image neighbours (up to ``max_gap_pixels`` apart, horizontally or
+    vertically), their depths differ by less than the segmentation's discontinuity threshold.
+
+    Segments are cut at depth discontinuities, so two segments whose boundary is continuous in
+    depth meet at an edge (two faces of a box, a box standing on a table); a box in front of
+    a wall is image-adjacent to it but not depth-adjacent.
+    """
+    labels = np.asarray(label_image)
+    z = np.asarray(depth, dtype=np.float64)
+    pairs = []
+    for gap in range(1, max_gap_pixels + 2):
+        for a, b, za, zb in (
+            (labels[:, :-gap], labels[:, gap:], z[:, :-gap], z[:, gap:]),
+            (labels[:-gap, :], labels[gap:, :], z[:-gap, :], z[gap:, :]),
+        ):
+            keep = (a >= 0) & (b >= 0) & (a != b) & (za > 0) & (zb > 0)
+            if not keep.any():
+                continue
+            za_k, zb_k = za[keep], zb[keep]
+            mean_z = 0.5 * (za_k + zb_k)
+            sigma = noise.sigma_z_coefficient * mean_z**2
+            threshold = np.maximum(segments_config.min_discontinuity, segments_config.discontinuity_sigmas * sigma)
+            continuous = np.abs(za_k - zb_k) < threshold * gap
+            if continuous.any():
+                pairs.append(np.sort(np.stack([a[keep][continuous], b[keep][continuous]], axis=1), axis=1))
+    if not pairs:
+        return np.zeros((0, 2), dtype=np.int64)
+    stacked = np.concatenate(pairs).astype(np.int64)
+    unique, counts = np.unique(stacked, axis=0, return_counts=True)
+    return unique[counts >= min_boundary_pixels]
+
+
+def grow_region(seeds: list[int], candidates: np.ndarray, adjacency: np.ndarray) -> list[int]:
+    """``seeds`` plus every candidate segment (``candidates`` ``(S,)`` bool) reachable from them
+    through ``adjacency`` pairs over candidate segments only; ascending."""
+    region = set(int(s) for s in seeds)
+    if not len(adjacency):
+        return sorted(region)
+    neighbours: dict[int, list[int]] = {}
+    for a, b in adjacency:
+        neighbours.setdefault(int(a), []).append(int(b))
+        neighbours.setdefault(int(b), []).append(int(a))
+    frontier = list(region)
+    while frontier:
+        current = frontier.pop()
+        for other in neighbours.get(current, []):
+            if other not in region and candidates[other]:
+                region.add(other)
+                frontier.append(other)
+    return sorted(region)
+
+
+def unsupported_segments(measurements: FrameMeasurements, static_inliers: np.ndarray, min_points: int,
+                         max_static_share: float = 0.2) -> np.ndarray:
+    """``(S,)`` bool: segments with at least ``min_points`` 3D point features of which at most
+    ``max_static_share`` are inliers of the static registration: nothing says they are static.
+    Featureless segments are never unsupported (there is no evidence either way)."""
+    segments, points = measurements.segments, measurements.points
+    result = np.zeros(len(segments), dtype=bool)
+    for segment, indices in enumerate(segments.point_indices):
+        indices = np.asarray(indices, dtype=np.int64)
+        three_d = int(points.has_depth[indices].sum())
+        if three_d >= min_points:
+            result[segment] = static_inliers[indices].sum() <= max_static_share * three_d
+    return result
+
+
+@dataclass
+class DepthView:
+    """A subsampled depth image of a keyframe for free-space tests: ``depth`` ``(h, w)`` metres
+    (0 invalid) at every ``stride``-th pixel, ``T_w_c`` its camera pose."""
+
+    depth: np.ndarray
+    T_w_c: np.ndarray
+    stride: int
+
+
+def free_space_violations(
+    depth: np.ndarray,
+    label_image: np.ndarray,
+    T_w_c: np.ndarray,
+    intrinsics,
+    view: DepthView,
+    num_segments: int,
+    noise,
+    margin: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per segment ``(S,)`` counts of sampled pixels that lie in space an earlier view saw as
+    empty (*violations*) and of pixels that agree with that view (*consistent*).
+
+    Every ``view.stride``-th valid pixel of the frame is moved into the earlier view's camera
+    and projected; it violates free space when it is closer to that camera than the surface the
+    view measured there, by more than ``max(margin, inlier_sigmas * sigma_Z)``. Only something
+    that moved in can do that: static structure seen for the first time stays behind what the
+    earlier view saw (or is hidden from it), and a region an object left is farther, not closer.
+    """
+    stride = view.stride
+    z = np.asarray(depth, dtype=np.float64)[::stride, ::stride]
+    labels = np.asarray(label_image)[::stride, ::stride]
+    rows, cols = np.nonzero((z > 0) & (labels >= 0))
+    violations = np.zeros(num_segments, dtype=np.int64)
+    consistent = np.zeros(num_segments, dtype=np.int64)
+    if not len(rows):
+        return violations, consistent
+    fx, fy, cx, cy = intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy
+    zs = z[rows, cols]
+    u, v = cols * stride, rows * stride
+    camera = np.column_stack([(u - cx) / fx * zs, (v - cy) / fy * zs, zs])
+    T_view_cam = np.linalg.inv(view.T_w_c) @ T_w_c
+    in_view = camera @ T_view_cam[:3, :3].T + T_view_cam[:3, 3]
+    ahead = in_view[:, 2] > 1e-3
+    safe = np.where(ahead, in_view[:, 2], 1.0)
+    pu = np.round((fx * in_view[:, 0] / safe + cx) / stride).astype(np.int64)
+    pv = np.round((fy * in_view[:, 1] / safe + cy) / stride).astype(np.int64)
+    height, width = view.depth.shape
+    inside = ahead & (pu >= 0) & (pu < width) & (pv >= 0) & (pv < height)
+    seen = np.zeros(len(zs))
+    seen[inside] = view.depth[pv[inside], pu[inside]]
+    usable = inside & (seen > 0)
+    threshold = np.maximum(margin, noise.inlier_sigmas * noise.sigma_z_coefficient * seen**2)
+    closer = usable & (in_view[:, 2] < seen - threshold)
+    agrees = usable & (np.abs(in_view[:, 2] - seen) <= threshold)
+    segment = labels[rows, cols]
+    np.add.at(violations, segment[closer], 1)
+    np.add.at(consistent, segment[agrees], 1)
+    return violations, consistent

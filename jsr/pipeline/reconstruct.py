@@ -42,8 +42,13 @@ from jsr.pipeline.objects import (
     ObjectRegistrar,
     ObjectTrackingResult,
     complete_segments,
+    DepthView,
+    depth_adjacent_segments,
+    free_space_violations,
+    grow_region,
     inlier_mask,
     segment_vlads,
+    unsupported_segments,
 )
 from jsr.pipeline.registration import RegistrationResult, register
 from jsr.pipeline.vlad import SegmentIndex, VladVocabulary
@@ -51,6 +56,8 @@ from jsr.pipeline.vlad import SegmentIndex, VladVocabulary
 logger = logging.getLogger(__name__)
 
 STATIC_MAP = "static"
+FREE_SPACE_STRIDE = 4  # free-space tests sample every 4th pixel of every 4th row
+FREE_SPACE_VIEWS = 2  # ... against the latest static keyframes
 
 
 @dataclass
@@ -156,6 +163,9 @@ class Reconstructor:
         # Per-frame ownership images of the frames that gave a keyframe to some map: the dense
         # models fuse only the pixels each map received.
         self.keyframe_masks: dict[int, np.ndarray] = {}
+        self._adjacency_cache: np.ndarray | None = None
+        # Subsampled depth of the latest static keyframes, for free-space tests (detection).
+        self.depth_views: list[tuple[int, DepthView]] = []
 
     @property
     def maps(self) -> list[Map]:
@@ -209,7 +219,8 @@ class Reconstructor:
         tic = time.perf_counter()
         tracked_objects = self._register_objects(measurements, report, static) if objects_on else []
         timings["objects"] = (time.perf_counter() - tic) * 1000.0
-        assignment = self._classify(measurements, static, tracked_objects)
+        self._adjacency_cache = None
+        assignment = self._classify(frame, measurements, static, tracked_objects)
         if objects_on and static is not None:
             tic = time.perf_counter()
             self._detect(frame, measurements, report, static, tracked_objects, assignment)
@@ -256,6 +267,7 @@ class Reconstructor:
         report.tracked, report.T_w_c, report.new_keyframe = True, pose, True
         self._last_pose = pose
         self._previous = (measurements, pose)
+        self._remember_depth(frame, measurements, assignment)
         return assignment
 
     def _segments_in_mask(self, measurements: FrameMeasurements, mask: np.ndarray) -> list[int]:
@@ -388,9 +400,27 @@ class Reconstructor:
         return (stats.matched >= detection.min_segment_features) & (
             stats.outlier_ratio <= 0.5 * detection.segment_outlier_ratio)
 
-    def _classify(self, measurements: FrameMeasurements, static: StaticRegistration | None,
+    def _adjacency(self, frame: Frame, measurements: FrameMeasurements) -> np.ndarray:
+        """Depth-adjacent segment pairs of this frame (computed once, when first needed)."""
+        if self._adjacency_cache is None:
+            self._adjacency_cache = depth_adjacent_segments(
+                measurements.segments.label_image, frame.depth, self.config.noise, self.config.segments)
+        return self._adjacency_cache
+
+    def _grow(self, frame: Frame, measurements: FrameMeasurements, seeds: list[int], static_inliers: np.ndarray,
+              segment_owner: np.ndarray) -> list[int]:
+        """``seeds`` grown into depth-adjacent segments that nothing shows to be static
+        (``objects.grow_segments``): the faces of an object whose features are not matched yet."""
+        if not self.config.objects.grow_segments or not seeds:
+            return sorted(int(s) for s in seeds)
+        candidates = unsupported_segments(measurements, static_inliers, self.config.detection.min_segment_features)
+        candidates &= segment_owner == 0
+        return grow_region(seeds, candidates, self._adjacency(frame, measurements))
+
+    def _classify(self, frame: Frame, measurements: FrameMeasurements, static: StaticRegistration | None,
                   outcomes: list[ObjectTrackingResult]) -> FrameAssignment:
-        """Algorithm 1 (lines 14-24), then segment completion (``objects.segment_completion``)."""
+        """Algorithm 1 (lines 14-24), then segment completion (``objects.segment_completion``)
+        and growth into depth-adjacent unsupported segments (``objects.grow_segments``)."""
         points, planes, segments = measurements.points, measurements.planes, measurements.segments
         num_points, num_planes = len(points), len(planes)
         point_segment = segments.segment_of_points(num_points)
@@ -415,16 +445,20 @@ class Reconstructor:
                                                          registrations)
         segment_owner = np.zeros(len(segments), dtype=np.int64)
         tracked = [r for r in registrations if r.frame_success or r.segment_success]
+        static_inliers = np.zeros(num_points, dtype=bool)
+        if static is not None:
+            static_inliers, _ = inlier_mask(static.matched, static.result, num_points, num_planes)
         if tracked and self.config.objects.segment_completion:
             # Evidence: points that are inliers of the registration of the map they were given to.
-            evidence = np.zeros(num_points, dtype=bool)
-            if static is not None:
-                static_inliers, _ = inlier_mask(static.matched, static.result, num_points, num_planes)
-                evidence |= static_inliers & (point_owner == 0)
+            evidence = static_inliers & (point_owner == 0)
             for r in tracked:
                 evidence |= (point_owner == r.object_id) & (r.frame_inliers_points | r.segment_inliers_points)
             segment_owner = complete_segments(point_segment, len(segments), point_owner, evidence,
                                               [r.object_id for r in tracked], self.config.detection.min_segment_features)
+            for r in tracked:
+                own = np.flatnonzero(segment_owner == r.object_id).tolist()
+                grown = self._grow(frame, measurements, own, static_inliers, segment_owner)
+                segment_owner[[s for s in grown if segment_owner[s] == 0]] = r.object_id
             # Features and planes inside an object's segment go to that object, matched or not:
             # new views of the object grow its map instead of leaking into the static map.
             in_object_segment = (point_segment >= 0) & (segment_owner[np.maximum(point_segment, 0)] > 0)
@@ -450,12 +484,14 @@ class Reconstructor:
         inliers, _ = inlier_mask(static.matched, static.result, num_points, len(measurements.planes))
         moving = detect_moving_segments(segments, matched, inliers, self.config.detection,
                                         exclude=assignment.point_owner > 0)
+        moving = sorted(set(moving) | set(self._free_space_segments(frame, measurements, report.T_w_c, inliers)))
         moving = [s for s in moving if assignment.segment_owner[s] == 0]
         if not moving:
             return
         groups = merge_adjacent_moving_segments(segments, moving, self.config.detection.merge_gap_pixels)
         by_id = {outcome.object_map.object_id: outcome for outcome in outcomes}
         for group in groups:
+            group = self._grow(frame, measurements, group, inliers, assignment.segment_owner)
             group_points = np.concatenate([segments.point_indices[s] for s in group]).astype(np.int64)
             group_points = group_points[assignment.point_owner[group_points] == 0]
             if int(points.has_depth[group_points].sum()) < self.config.detection.min_object_points:
@@ -584,7 +620,43 @@ class Reconstructor:
             plane_landmark_of[static_planes],
         )
         report.new_keyframe = True
+        self._remember_depth(frame, measurements, assignment)
         self.bundle.maybe_start(self.static_map)
+
+    def _remember_depth(self, frame: Frame, measurements: FrameMeasurements, assignment: FrameAssignment) -> None:
+        """Keep the static pixels' depth of the new static keyframe (subsampled) for free-space tests."""
+        if not (self.config.objects.enabled and self.config.objects.free_space_detection):
+            return
+        stride = FREE_SPACE_STRIDE
+        depth = np.array(frame.depth[::stride, ::stride], dtype=np.float32)
+        ownership = self._ownership_image(measurements, assignment)[::stride, ::stride]
+        depth[ownership > 0] = 0.0  # where objects were, nothing is known about free space
+        keyframe_id = self.static_map.keyframes[-1].keyframe_id
+        self.depth_views.append((keyframe_id, DepthView(depth, self.static_map.keyframes[-1].T_map_cam, stride)))
+        del self.depth_views[:-FREE_SPACE_VIEWS]
+
+    def _free_space_segments(self, frame: Frame, measurements: FrameMeasurements, T_w_c: np.ndarray,
+                             static_inliers: np.ndarray) -> list[int]:
+        """Segments that lie in space the latest static keyframes saw as empty: something moved
+        in (an object that jumped to where the static map has no landmarks of it)."""
+        config = self.config.objects
+        if not config.free_space_detection or not self.depth_views:
+            return []
+        segments, points = measurements.segments, measurements.points
+        violations = np.zeros(len(segments), dtype=np.int64)
+        consistent = np.zeros(len(segments), dtype=np.int64)
+        for keyframe_id, view in self.depth_views:
+            view.T_w_c = self.static_map.keyframes[keyframe_id].T_map_cam  # after bundle adjustment
+            closer, agrees = free_space_violations(frame.depth, segments.label_image, T_w_c, self.intrinsics, view,
+                                                   len(segments), self.config.noise, config.free_space_margin)
+            violations += closer
+            consistent += agrees
+        min_samples = config.free_space_min_pixels / FREE_SPACE_STRIDE**2
+        moving = (violations >= min_samples) & (violations > consistent)
+        static_support = np.array([static_inliers[np.asarray(i, dtype=np.int64)].sum() for i in segments.point_indices])
+        three_d = np.array([points.has_depth[np.asarray(i, dtype=np.int64)].sum() for i in segments.point_indices])
+        moving &= static_support <= 0.2 * np.maximum(three_d, 1)
+        return np.flatnonzero(moving).tolist()
 
     def _retire_static_landmarks(self, static: StaticRegistration, assignment: FrameAssignment) -> None:
         """Static-map hygiene: landmarks the static map took from an object (before it moved)

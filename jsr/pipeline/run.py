@@ -14,6 +14,11 @@ Layout written (``DIR``)::
     static/keyframes.tum    T_w_c of the static map's keyframes
     static/landmarks.ply    active point landmarks of the static map (world frame)
     static/cloud.ply, static/mesh.ply   dense model fused from the keyframes (end of run)
+    objects/object_K/trajectory.tum      T_w_o of object K in every frame it was tracked (world frame)
+    objects/object_K/keyframes.tum       T_o_c of its keyframes (object frame = camera frame at detection)
+    objects/object_K/landmarks.ply       its active point landmarks (object frame)
+    objects/object_K/cloud.ply, mesh.ply its dense model (object frame; end of run)
+    masks/<colour stem>.png              with save_masks: 0 static, K pixels given to object K
 """
 
 from __future__ import annotations
@@ -28,11 +33,12 @@ import numpy as np
 
 from jsr import __version__
 from jsr.config import Config, config_to_yaml
-from jsr.io.atomic import atomic_write_text
+from jsr.io.atomic import atomic_write_bytes, atomic_write_text
 from jsr.io.dataset import RGBDSequence
 from jsr.io.trajectory import write_tum_trajectory
 from jsr.io.writers import write_csv, write_json, write_point_cloud_ply
 from jsr.pipeline.maps import Map
+from jsr.pipeline.objects import ObjectMap
 from jsr.pipeline.reconstruct import FrameReport, Reconstructor
 
 logger = logging.getLogger(__name__)
@@ -45,6 +51,21 @@ STAGE_ORDER = ["sift", "depth_lookup", "planes", "segments", "frontend_total", "
 def _ordered_stages(reports: list[FrameReport]) -> list[str]:
     seen = {key for report in reports for key in report.timings_ms}
     return [s for s in STAGE_ORDER if s in seen] + sorted(seen - set(STAGE_ORDER))
+
+
+def map_folder(map_: Map) -> str:
+    """Folder of a map inside the results: ``static`` or ``objects/object_K``."""
+    return f"objects/{map_.name}" if isinstance(map_, ObjectMap) else map_.name
+
+
+def write_mask(path: Path, mask: np.ndarray) -> None:
+    """Write an ``(H, W)`` uint8 ownership mask as a PNG, atomically."""
+    import cv2
+
+    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(mask, dtype=np.uint8))
+    if not ok:  # pragma: no cover - OpenCV encodes any uint8 image
+        raise RuntimeError(f"could not encode {path}")
+    atomic_write_bytes(path, encoded.tobytes())
 
 
 class ResultsWriter:
@@ -82,7 +103,22 @@ class ResultsWriter:
              for r in reports),
         )
         for map_ in reconstructor.maps:
-            self.write_sparse_map(map_, self.out_dir / map_.name)
+            self.write_sparse_map(map_, self.out_dir / map_folder(map_))
+        for object_map in reconstructor.object_maps:
+            frames = object_map.trajectory
+            write_tum_trajectory(
+                self.out_dir / map_folder(object_map) / "trajectory.tum",
+                np.array([timestamp for _, timestamp, _ in frames]),
+                np.array([T_w_o for _, _, T_w_o in frames]).reshape(-1, 4, 4),
+                header=f"object {object_map.object_id}: object-to-world T_w_o in every frame it was tracked; "
+                "world = first camera frame, object frame = camera frame at detection",
+            )
+
+    def write_mask(self, report: FrameReport) -> None:
+        """``masks/<colour stem>.png`` of one frame."""
+        if report.mask is not None:
+            (self.out_dir / "masks").mkdir(parents=True, exist_ok=True)
+            write_mask(self.out_dir / "masks" / f"{report.name}.png", report.mask)
 
     def write_sparse_map(self, map_: Map, folder: Path) -> None:
         folder.mkdir(parents=True, exist_ok=True)
@@ -126,6 +162,11 @@ class ResultsWriter:
                          "plane_landmarks": len(m.planes)}
                 for m in reconstructor.maps
             },
+            "objects": [
+                {"id": m.object_id, "created_at_frame": m.created_at_frame, "frames_tracked": m.frames_tracked,
+                 "keyframes": len(m.keyframes), "point_landmarks": m.points.active_count}
+                for m in reconstructor.object_maps
+            ],
             "timings": timing_summary,
             "platform": platform.platform(),
         }
@@ -140,24 +181,31 @@ def run_reconstruction(
     on_frame: Callable[[FrameReport], None] | None = None,
     flush_every: int = 25,
     dense_models: bool = True,
+    save_masks: bool = False,
+    init_object_mask: np.ndarray | None = None,
 ) -> dict:
     """Reconstruct ``sequence`` into ``out_dir`` (which must exist and be empty of results).
 
-    ``on_frame`` is called after every frame (progress display). Returns the summary dict
+    ``on_frame`` is called after every frame (progress display). ``save_masks`` writes the
+    ownership mask of every frame to ``masks/``; ``init_object_mask`` ``(H, W)`` bool starts
+    object map 1 on the first frame (see :class:`Reconstructor`). Returns the summary dict
     (also written to ``summary.json``). A KeyboardInterrupt or any exception is re-raised after
     the results of the frames done have been written.
     """
     writer = ResultsWriter(out_dir, sequence, config)
     writer.write_config()
-    reconstructor = Reconstructor(config, sequence.intrinsics)
+    reconstructor = Reconstructor(config, sequence.intrinsics, init_object_mask=init_object_mask)
     started = time.perf_counter()
     status, error = "running", ""
     tracking_seconds = None
     try:
         for index in range(len(sequence)):
             report = reconstructor.process(sequence[index])
+            if save_masks:
+                writer.write_mask(report)
             if on_frame is not None:
                 on_frame(report)
+            report.mask = None  # written; the keyframes' masks are kept by the reconstructor
             if flush_every and (index + 1) % flush_every == 0:
                 writer.write_tables(reconstructor)
                 writer.write_summary(reconstructor, status, time.perf_counter() - started)
