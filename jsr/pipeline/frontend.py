@@ -30,6 +30,37 @@ logger = logging.getLogger(__name__)
 STAGES = ("sift", "depth_lookup", "planes", "segments", "frontend_total")
 
 
+REFERENCE_WIDTH, REFERENCE_HEIGHT = 640, 480  # the resolution the pixel thresholds are given for
+
+
+def scaled_to_resolution(config: Config, width: int, height: int) -> Config:
+    """A copy of ``config`` whose pixel sizes fit a ``width`` x ``height`` image (and without
+    half-resolution SIFT below 640 pixels wide).
+
+    Block size, minimum plane and segment sizes are given for 640x480 in the config; an object
+    covers the same share of the image at any resolution, so block sides scale with the width
+    and pixel counts with the area (a 320x240 frame would otherwise miss every plane below a
+    quarter of the image).
+    """
+    import dataclasses
+
+    linear = width / REFERENCE_WIDTH
+    area = (width * height) / (REFERENCE_WIDTH * REFERENCE_HEIGHT)
+    if abs(area - 1.0) < 1e-9:
+        return config
+    planes = dataclasses.replace(
+        config.planes,
+        block_size=max(4, int(round(config.planes.block_size * linear))),
+        min_plane_pixels=max(16, int(round(config.planes.min_plane_pixels * area))),
+    )
+    segments = dataclasses.replace(
+        config.segments, min_segment_pixels=max(16, int(round(config.segments.min_segment_pixels * area))))
+    # SIFT at half resolution is a speed-up for 640x480 and larger; below that it would leave
+    # too few keypoints on small objects.
+    features = dataclasses.replace(config.features, half_resolution=config.features.half_resolution and linear >= 1.0)
+    return dataclasses.replace(config, planes=planes, segments=segments, features=features)
+
+
 class FrontEnd:
     """Measurement extraction for the frames of one camera.
 
@@ -40,7 +71,7 @@ class FrontEnd:
     """
 
     def __init__(self, config: Config, intrinsics: CameraIntrinsics, parallel: bool = True):
-        self.config = config
+        self.config = scaled_to_resolution(config, intrinsics.width, intrinsics.height)
         self.intrinsics = intrinsics
         self._sift = create_sift(config.features)
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jsr-sift") if parallel else None
