@@ -32,11 +32,11 @@ frames used; "moves" = its true T_w_o changes by > 1 mm or > 0.5 deg from the pr
    object its masks overlap most over the whole run (pixels with mask == K and label == k,
    summed over frames); a map overlapping no object is spurious. Target: exactly one map per
    moving object and no other.
-3. pose error: for each true moving object, its matched map with the most overlap; its
-   trajectory T_w_o against the true T_w_o on common frames, as ``jsr.evaluate.object_pose_error``
-   does: poses compared in the camera frame (C = inv(T_w_c) T_w_o, which needs no world
-   alignment) after removing the constant offset between the estimated and true object frames;
-   translation RMSE (cm) and rotation RMSE (deg). The estimated T_w_c used is the frame's
+3. pose error: for each true moving object, the trajectory T_w_o of each map matched to it
+   against the true T_w_o on common frames, as ``jsr.evaluate.object_pose_error`` does: poses compared in the camera frame (C = inv(T_w_c) T_w_o, which needs no world
+   alignment) after removing the constant offset between the estimated and true object frames
+   (one offset per map); translation RMSE (cm) and rotation RMSE (deg) pooled over the tracked
+   frames of all its maps (per map in the JSON). The estimated T_w_c used is the frame's
    pose at the time (``FrameReport.T_w_c``), the one T_w_o was composed with, so C_est is the
    object tracker's own estimate (bundle adjustment of the static map moves camera poses later
    but not the recorded object poses).
@@ -336,22 +336,29 @@ def score(record: RunRecord, sequence, seq_dir: Path, max_difference: float) -> 
         row["detection_delay"] = detecting[0][0] - start if detecting and start is not None else None
         after = sorted(frame for frame, _ in record.creation_overlap.values() if start is not None and frame >= start)
         row["first_creation_after_motion"] = after[0] if after else None
-        # 3. pose error of the map with the most overlap
-        row["pose"] = None
-        if matched:
-            primary = max(matched, key=lambda m: m["overlap_pixels"][k])
-            row["pose_map"] = primary["id"]
+        # 3. pose error, per matched map (each has its own object frame, so its own offset),
+        #    pooled over the frames of all maps matched to the object
+        row["pose"], row["pose_per_map"] = None, []
+        translation_errors, rotation_errors = [], []
+        for K in row["maps"]:
             rows = [(reports[i].T_w_c, T_w_o, gt_camera[position[i]], true_objects[k][position[i]])
-                    for i, _, T_w_o in by_id[primary["id"]].trajectory
-                    if i in reports and reports[i].T_w_c is not None]
+                    for i, _, T_w_o in by_id[K].trajectory if i in reports and reports[i].T_w_c is not None]
             rows = [r for r in rows if r[2] is not None and r[3] is not None]
-            if rows:
-                error = object_pose_error(*(np.array(column) for column in zip(*rows)),
-                                          estimated_id=primary["id"], true_id=k)
-                row["pose"] = {"frames": error.frames, "translation_rmse_cm": error.translation_rmse_cm,
-                               "rotation_rmse_deg": error.rotation_rmse_deg,
-                               "translation_median_cm": error.translation_median_cm,
-                               "rotation_median_deg": error.rotation_median_deg}
+            if not rows:
+                continue
+            error = object_pose_error(*(np.array(column) for column in zip(*rows)), estimated_id=K, true_id=k)
+            translation_errors.append(error.translation_errors_cm)
+            rotation_errors.append(error.rotation_errors_deg)
+            row["pose_per_map"].append({"map": K, "frames": error.frames,
+                                        "translation_rmse_cm": error.translation_rmse_cm,
+                                        "rotation_rmse_deg": error.rotation_rmse_deg})
+        if translation_errors:
+            translation, rotation = np.concatenate(translation_errors), np.concatenate(rotation_errors)
+            row["pose"] = {"frames": len(translation),
+                           "translation_rmse_cm": float(np.sqrt(np.mean(translation ** 2))),
+                           "rotation_rmse_deg": float(np.sqrt(np.mean(rotation ** 2))),
+                           "translation_median_cm": float(np.median(translation)),
+                           "rotation_median_deg": float(np.median(rotation))}
         # 4. tracked share over visible frames from the first motion on
         visible = [i for i in frame_indices if start is not None and i >= start and i in record.label_counts
                    and record.label_counts[i][k] > VISIBLE_PIXEL_THRESHOLD]
@@ -425,6 +432,7 @@ def table_rows(result: dict) -> dict[str, str]:
     return {
         "frames (tracked)": f"{result['frames']} ({result['frames_tracked']})",
         "maps created / moving": f"{result['maps_created']}/{len(moving)}" + ("" if one_each else "*"),
+        "  maps matching no object": f"{len(result['maps_spurious'])}",
         "detection delay (frames)": _per_object(result, lambda o: o["detection_delay"], "d",
                                                 lambda v: not 0 <= v <= t["detection_delay"]),
         "tracked share": _per_object(result, lambda o: o["tracked_share"], ".0%", lambda v: v < t["tracked_share"]),

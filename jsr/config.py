@@ -142,6 +142,8 @@ class ObjectsConfig:
     retire_object_matches: bool = True
     retire_after_outliers: int = 3
     reidentify: bool = True
+    merge_maps: bool = True
+    merge_min_shared_inliers: int = 5
     free_space_detection: bool = True
     free_space_margin: float = 0.05
     free_space_min_pixels: int = 400
@@ -256,6 +258,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "detection.min_object_points": (lambda v: v >= 3, "at least 3"),
     "objects.retire_after_outliers": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.free_space_margin": (lambda v: v > 0, "positive"),
+    "objects.merge_min_shared_inliers": (lambda v: v >= 1, "at least 1"),
     "objects.free_space_min_pixels": (lambda v: v >= 1, "at least 1"),
     "vlad.vocabulary_size": (lambda v: v >= 2, "at least 2"),
     "vlad.max_pairs": (lambda v: v >= 1, "at least 1"),

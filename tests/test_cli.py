@@ -91,6 +91,13 @@ def make_bad_input(tmp_path, problem):
         args += ["--config", tmp_path / "c.yaml"]
     elif problem == "negative seed":
         args += ["--set", "seed=-1"]
+    elif problem == "bad init box":
+        args += ["--init-box", "1,2,3"]
+    elif problem == "init mask size":
+        cv2.imwrite(str(tmp_path / "mask.png"), np.full((10, 10), 255, np.uint8))
+        args += ["--init-object", tmp_path / "mask.png"]
+    elif problem == "missing init mask":
+        args += ["--init-object", tmp_path / "nomask.png"]
     elif problem == "fractional width":
         (seq / "camera.yaml").write_text("fx: 30\nfy: 30\ncx: 16\ncy: 12\nwidth: 32.5\nheight: 24\n")
     return args
@@ -113,6 +120,9 @@ BAD_INPUTS = {
     "binary config": "not a text file",
     "negative seed": "'seed' must be a whole number >= 0",
     "fractional width": "width must be a whole number",
+    "bad init box": "--init-box must be four integers",
+    "init mask size": "initial object mask",
+    "missing init mask": "does not exist",
 }
 
 

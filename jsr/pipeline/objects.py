@@ -395,3 +395,57 @@ def free_space_violations(
     np.add.at(violations, segment[closer], 1)
     np.add.at(consistent, segment[agrees], 1)
     return violations, consistent
+
+
+def merge_object_maps(target: ObjectMap, source: ObjectMap, T_target_source: np.ndarray) -> np.ndarray:
+    """Move everything of ``source`` into ``target`` (two maps found to be one object).
+
+    ``T_target_source`` maps ``source``'s object frame into ``target``'s. Landmarks, planes and
+    keyframes are appended (keyframes then renumbered in frame order), the segments' landmark
+    lists remapped, and the trajectories joined (``target``'s pose wins in a frame both have).
+    Returns ``(L_source,)`` the new landmark id of every ``source`` landmark.
+    """
+    from jsr.geometry import transform_planes, transform_points
+    from jsr.pipeline.maps import Keyframe
+
+    points = source.points
+    new_ids = target.points.add(
+        transform_points(T_target_source, points.positions), points.descriptors,
+        1.0 / np.sqrt(np.maximum(points.weights, 1e-12)), points.colors)
+    target.points.observations[new_ids] = points.observations
+    target.points.retire(new_ids[~points.active])
+    new_plane_ids = np.zeros(0, dtype=np.int64)
+    if len(source.planes):
+        new_plane_ids = target.planes.add(transform_planes(T_target_source, source.planes.planes),
+                                          transform_points(T_target_source, source.planes.centroids),
+                                          source.planes.point_counts)
+    keyframes = list(target.keyframes)
+    source_keyframe_position = {}
+    for keyframe in source.keyframes:
+        source_keyframe_position[keyframe.keyframe_id] = len(keyframes)
+        keyframes.append(Keyframe(
+            keyframe_id=-1, frame_index=keyframe.frame_index, timestamp=keyframe.timestamp,
+            T_map_cam=T_target_source @ keyframe.T_map_cam, point_measurements=keyframe.point_measurements,
+            point_landmarks=new_ids[keyframe.point_landmarks], camera_points=keyframe.camera_points,
+            pixels=keyframe.pixels, sigma_z=keyframe.sigma_z,
+            plane_landmarks=new_plane_ids[keyframe.plane_landmarks] if len(keyframe.plane_landmarks) else
+            keyframe.plane_landmarks, camera_planes=keyframe.camera_planes))
+    target_keyframe_position = {keyframe.keyframe_id: i for i, keyframe in enumerate(target.keyframes)}
+    order = sorted(range(len(keyframes)), key=lambda i: (keyframes[i].frame_index, i))
+    new_keyframe_id = {position: rank for rank, position in enumerate(order)}
+    target.keyframes = [keyframes[i] for i in order]
+    for rank, keyframe in enumerate(target.keyframes):
+        keyframe.keyframe_id = rank
+    segments = {}
+    for (keyframe_id, segment), landmarks in target.segment_landmarks.items():
+        segments[(new_keyframe_id[target_keyframe_position[keyframe_id]], segment)] = landmarks
+    for (keyframe_id, segment), landmarks in source.segment_landmarks.items():
+        segments[(new_keyframe_id[source_keyframe_position[keyframe_id]], segment)] = new_ids[landmarks]
+    target.segment_landmarks = segments
+    by_frame = {index: (index, timestamp, T_w_o @ np.linalg.inv(T_target_source))
+                for index, timestamp, T_w_o in source.trajectory}
+    by_frame.update({index: (index, timestamp, T_w_o) for index, timestamp, T_w_o in target.trajectory})
+    target.trajectory = [by_frame[index] for index in sorted(by_frame)]
+    target.frames_tracked = len(target.trajectory)
+    target.created_at_frame = min(target.created_at_frame, source.created_at_frame)
+    return new_ids

@@ -47,6 +47,7 @@ from jsr.pipeline.objects import (
     free_space_violations,
     grow_region,
     inlier_mask,
+    merge_object_maps,
     segment_vlads,
     unsupported_segments,
 )
@@ -218,6 +219,7 @@ class Reconstructor:
         objects_on = self.config.objects.enabled
         tic = time.perf_counter()
         tracked_objects = self._register_objects(measurements, report, static) if objects_on else []
+        tracked_objects = self._merge_duplicates(measurements, tracked_objects)
         timings["objects"] = (time.perf_counter() - tic) * 1000.0
         self._adjacency_cache = None
         assignment = self._classify(frame, measurements, static, tracked_objects)
@@ -382,6 +384,48 @@ class Reconstructor:
                     logger.info("frame %d: object %d not found", measurements.frame_index, object_map.object_id)
                 object_map.lost = True
         return outcomes
+
+    def _merge_duplicates(self, measurements: FrameMeasurements,
+                          outcomes: list[ObjectTrackingResult]) -> list[ObjectTrackingResult]:
+        """Two object maps that explain the same measurements in one frame are one object (its
+        first map saw a side the second never did, e.g. before a jump that turned it): the
+        newer map is merged into the older one (``objects.merge_maps``)."""
+        config = self.config.objects
+        successful = [o for o in outcomes if o.success]
+        if not config.merge_maps or len(successful) < 2:
+            return outcomes
+        num_points, num_planes = len(measurements.points), len(measurements.planes)
+        inliers = {o.object_map.object_id: inlier_mask(*o.best, num_points, num_planes)[0] for o in successful}
+        merged: set[int] = set()
+        for i, target in enumerate(successful):
+            for source in successful[i + 1:]:
+                target_id, source_id = target.object_map.object_id, source.object_map.object_id
+                if target_id in merged or source_id in merged:
+                    continue
+                shared = int((inliers[target_id] & inliers[source_id]).sum())
+                if shared < config.merge_min_shared_inliers:
+                    continue
+                T_target_source = target.T_o_c @ np.linalg.inv(source.T_o_c)
+                self.bundle.finish(target.object_map)
+                self.bundle.finish(source.object_map)
+                merge_object_maps(target.object_map, source.object_map, T_target_source)
+                self.object_maps.remove(source.object_map)
+                self._reindex_segments(target.object_map)
+                self.segment_index.remove_map(source_id)
+                inliers[target_id] |= inliers[source_id]
+                merged.add(source_id)
+                logger.info("frame %d: object %d is object %d (%d shared inliers); maps merged",
+                            measurements.frame_index, source_id, target_id, shared)
+        return [o for o in outcomes if o.object_map.object_id not in merged]
+
+    def _reindex_segments(self, object_map: ObjectMap) -> None:
+        """Rebuild the VLADs of an object map's segments (after its keyframes were renumbered)."""
+        self.segment_index.remove_map(object_map.object_id)
+        if self.vocabulary is None:
+            return
+        for key, landmarks in object_map.segment_landmarks.items():
+            self.segment_index.add(object_map.object_id, key,
+                                   self.vocabulary.encode(object_map.points.descriptors[landmarks]))
 
     def _static_segments(self, measurements: FrameMeasurements, static: StaticRegistration | None) -> np.ndarray:
         """``(S,)`` bool: segments whose matched features clearly follow the static map (they
