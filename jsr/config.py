@@ -127,6 +127,10 @@ class DetectionConfig:
 
     segment_outlier_ratio: float = 0.6
     min_segment_features: int = 5
+    significance: float = 0.01
+    require_rigid_motion: bool = True
+    min_motion: float = 0.03
+    min_motion_degrees: float = 3.0
     merge_gap_pixels: int = 2
     min_object_points: int = 15
 
@@ -140,7 +144,8 @@ class ObjectsConfig:
     segment_completion: bool = True
     grow_segments: bool = True
     retire_object_matches: bool = True
-    retire_after_outliers: int = 3
+    retire_after_outliers: int = 0
+    retire_after_vacated: int = 2
     reidentify: bool = True
     merge_maps: bool = True
     merge_min_shared_inliers: int = 5
@@ -255,8 +260,12 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "detection.segment_outlier_ratio": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "detection.min_segment_features": (lambda v: v >= 1, "at least 1"),
     "detection.merge_gap_pixels": (lambda v: v >= 0, "at least 0"),
+    "detection.min_motion": (lambda v: v >= 0, "at least 0"),
+    "detection.min_motion_degrees": (lambda v: v >= 0, "at least 0"),
+    "detection.significance": (lambda v: 0 < v <= 1, "in (0, 1] (1: no test)"),
     "detection.min_object_points": (lambda v: v >= 3, "at least 3"),
     "objects.retire_after_outliers": (lambda v: v >= 0, "at least 0 (0: never)"),
+    "objects.retire_after_vacated": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.free_space_margin": (lambda v: v > 0, "positive"),
     "objects.merge_min_shared_inliers": (lambda v: v >= 1, "at least 1"),
     "objects.free_space_min_pixels": (lambda v: v >= 1, "at least 1"),

@@ -58,12 +58,27 @@ def test_outlier_stats_per_segment():
 
 def test_detects_segments_with_high_outlier_ratio_and_enough_features():
     segments, matched, inlier = _four_segments()
-    config = DetectionConfig(segment_outlier_ratio=0.6, min_segment_features=5)
+    config = DetectionConfig(segment_outlier_ratio=0.6, min_segment_features=5, significance=1.0)
     assert detect_moving_segments(segments, matched, inlier, config) == [1]
     # Lower the feature minimum: segment 2 qualifies; lower the ratio: segment 3 does.
-    assert detect_moving_segments(segments, matched, inlier, DetectionConfig(0.6, 4)) == [1, 2]
-    assert detect_moving_segments(segments, matched, inlier, DetectionConfig(0.55, 5)) == [1, 3]
-    assert detect_moving_segments(segments, matched, inlier, DetectionConfig(0.85, 1)) == [2]
+    assert detect_moving_segments(segments, matched, inlier, DetectionConfig(0.6, 4, significance=1.0)) == [1, 2]
+    assert detect_moving_segments(segments, matched, inlier, DetectionConfig(0.55, 5, significance=1.0)) == [1, 3]
+    assert detect_moving_segments(segments, matched, inlier, DetectionConfig(0.85, 1, significance=1.0)) == [2]
+
+
+def test_outliers_must_exceed_what_the_frame_outlier_ratio_explains():
+    segments, matched, inlier = _four_segments()
+    # In this frame 24 of 39 matches are outliers: 8 of 10 in segment 1 is not unusual.
+    assert detect_moving_segments(segments, matched, inlier, DetectionConfig(0.6, 5, significance=0.01)) == []
+    # With every other match an inlier, 8 outliers of 10 are far beyond chance.
+    clean = inlier.copy()
+    clean[[0]] = True
+    clean[20:24] = True
+    clean[30:36] = True
+    clean[40:45] = True
+    clean = np.concatenate([clean, np.ones(200, dtype=bool)])
+    wide_matched = np.concatenate([matched, np.ones(200, dtype=bool)])
+    assert detect_moving_segments(segments, wide_matched, clean, DetectionConfig(0.6, 5, significance=0.01)) == [1]
 
 
 def test_unmatched_inliers_are_ignored():
@@ -76,7 +91,7 @@ def test_unmatched_inliers_are_ignored():
 
 def test_excluded_measurements_are_ignored():
     segments, matched, inlier = _four_segments()
-    config = DetectionConfig(segment_outlier_ratio=0.6, min_segment_features=5)
+    config = DetectionConfig(segment_outlier_ratio=0.6, min_segment_features=5, significance=1.0)
     exclude = np.zeros(45, dtype=bool)
     exclude[10:16] = True  # six outliers of segment 1 already belong to an object map
     stats = segment_outlier_stats(segments, matched, inlier, exclude)

@@ -76,6 +76,16 @@ def segment_outlier_stats(
     return SegmentOutlierStats(matched_counts, outlier_counts, ratio)
 
 
+def outlier_significance(outliers: np.ndarray, matched: np.ndarray, base_ratio: float) -> np.ndarray:
+    """``(S,)`` probability of at least ``outliers`` outliers among ``matched`` features if they
+    were outliers at the frame's ``base_ratio`` only (binomial upper tail): small values mean the
+    segment has far more outliers than mismatches and noise explain."""
+    from scipy.stats import binom
+
+    ratio = float(np.clip(base_ratio, 0.05, 0.95))
+    return binom.sf(np.asarray(outliers) - 1, np.asarray(matched), ratio)
+
+
 def detect_moving_segments(
     segments: Segments,
     matched: np.ndarray,
@@ -85,11 +95,22 @@ def detect_moving_segments(
 ) -> list[int]:
     """Segments (ascending) whose outlier ratio exceeds ``config.segment_outlier_ratio``
     (strictly) and that have at least ``config.min_segment_features`` matched features,
-    ignoring the measurements in ``exclude`` (e.g. those already given to an object map)."""
+    ignoring the measurements in ``exclude`` (e.g. those already given to an object map).
+
+    With ``config.significance`` below 1, a segment must also hold more outliers than the
+    frame's overall outlier ratio makes likely (:func:`outlier_significance`): on real data a
+    quarter of all static matches can be outliers, and a static segment with 4 outliers in 6
+    matches is chance, not motion.
+    """
     stats = segment_outlier_stats(segments, matched, inlier, exclude)
     moving = (stats.outlier_ratio > config.segment_outlier_ratio) & (
         stats.matched >= config.min_segment_features
     )
+    if config.significance < 1.0 and moving.any():
+        counted = np.asarray(matched, dtype=bool) & ~_mask(exclude, len(np.asarray(matched)), "exclude", False)
+        total = int(counted.sum())
+        base = float((counted & ~np.asarray(inlier, dtype=bool)).sum()) / total if total else 0.0
+        moving &= outlier_significance(stats.outliers, stats.matched, base) < config.significance
     ids = np.flatnonzero(moving).tolist()
     if ids:
         logger.debug(

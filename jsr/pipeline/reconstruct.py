@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -22,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from jsr.config import Config
+from jsr.geometry import rotation_angle
 from jsr.io.camera import CameraIntrinsics
 from jsr.io.dataset import Frame
 from jsr.pipeline.bundle import BundleScheduler
@@ -165,6 +167,8 @@ class Reconstructor:
         # models fuse only the pixels each map received.
         self.keyframe_masks: dict[int, np.ndarray] = {}
         self._adjacency_cache: np.ndarray | None = None
+        self._free_space_cache: tuple[np.ndarray, np.ndarray] | None = None
+        self._frame_pose: np.ndarray | None = None  # T_w_c of the frame being processed, if tracked
         # Subsampled depth of the latest static keyframes, for free-space tests (detection).
         self.depth_views: list[tuple[int, DepthView]] = []
 
@@ -222,6 +226,8 @@ class Reconstructor:
         tracked_objects = self._merge_duplicates(measurements, tracked_objects)
         timings["objects"] = (time.perf_counter() - tic) * 1000.0
         self._adjacency_cache = None
+        self._free_space_cache = None
+        self._frame_pose = report.T_w_c if static is not None else None
         assignment = self._classify(frame, measurements, static, tracked_objects)
         if objects_on and static is not None:
             tic = time.perf_counter()
@@ -231,6 +237,8 @@ class Reconstructor:
         if static is not None:
             self._update_static(frame, measurements, report, static, assignment)
             self._retire_static_landmarks(static, assignment)
+            if objects_on:
+                self._retire_vacated_landmarks(frame, report.T_w_c)
         for outcome in tracked_objects:
             self._update_object(frame, measurements, report, outcome, assignment)
         timings["map_update"] = (time.perf_counter() - tic) * 1000.0
@@ -457,9 +465,23 @@ class Reconstructor:
         (``objects.grow_segments``): the faces of an object whose features are not matched yet."""
         if not self.config.objects.grow_segments or not seeds:
             return sorted(int(s) for s in seeds)
+        if self._frame_pose is None:
+            return sorted(int(s) for s in seeds)  # without a camera pose nothing can be checked
         candidates = unsupported_segments(measurements, static_inliers, self.config.detection.min_segment_features)
         candidates &= segment_owner == 0
+        # A segment whose surface lies where the static keyframes saw one has not moved, even if
+        # the static map holds few landmarks on it (a table top the object stands on).
+        violations, consistent = self._free_space(frame, measurements)
+        sampled = violations + consistent
+        min_samples = self.config.objects.free_space_min_pixels / FREE_SPACE_STRIDE**2
+        candidates &= (sampled < min_samples) | (consistent < 0.5 * sampled)
         return grow_region(seeds, candidates, self._adjacency(frame, measurements))
+
+    def _free_space(self, frame: Frame, measurements: FrameMeasurements) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_free_space_counts` of this frame at its camera pose (computed once)."""
+        if self._free_space_cache is None:
+            self._free_space_cache = self._free_space_counts(frame, measurements, self._frame_pose)
+        return self._free_space_cache
 
     def _classify(self, frame: Frame, measurements: FrameMeasurements, static: StaticRegistration | None,
                   outcomes: list[ObjectTrackingResult]) -> FrameAssignment:
@@ -526,9 +548,19 @@ class Reconstructor:
         matched = np.zeros(num_points, dtype=bool)
         matched[static.matched.point_measurements] = True
         inliers, _ = inlier_mask(static.matched, static.result, num_points, len(measurements.planes))
-        moving = detect_moving_segments(segments, matched, inliers, self.config.detection,
-                                        exclude=assignment.point_owner > 0)
-        moving = sorted(set(moving) | set(self._free_space_segments(frame, measurements, report.T_w_c, inliers)))
+        by_outliers = detect_moving_segments(segments, matched, inliers, self.config.detection,
+                                             exclude=assignment.point_owner > 0)
+        violations, consistent = self._free_space(frame, measurements)
+        if self.config.objects.free_space_detection:
+            # A region whose surface is where the static keyframes saw one, and not in front of
+            # it, has not moved: its outliers are mismatches (repeated texture matches the next
+            # cabinet door over with one consistent shift).
+            sampled = violations + consistent
+            min_samples = self.config.objects.free_space_min_pixels / FREE_SPACE_STRIDE**2
+            by_outliers = [s for s in by_outliers if sampled[s] < min_samples or consistent[s] < 0.5 * sampled[s]]
+        by_outliers = self._rigidly_moved(measurements, static, by_outliers, inliers)
+        by_free_space = self._free_space_segments(measurements, violations, consistent, inliers)
+        moving = sorted(set(by_outliers) | set(by_free_space))
         moving = [s for s in moving if assignment.segment_owner[s] == 0]
         if not moving:
             return
@@ -547,6 +579,47 @@ class Reconstructor:
             if object_map is not None:
                 report.objects_created.append(object_map.object_id)
                 report.objects_tracked.append(object_map.object_id)
+
+    def _rigidly_moved(self, measurements: FrameMeasurements, static: StaticRegistration, candidates: list[int],
+                       static_inliers: np.ndarray) -> list[int]:
+        """The candidate segments whose static-map outliers agree on one rigid motion
+        (``detection.require_rigid_motion``), grouped as touching regions.
+
+        An object that moved carries its old landmarks along: their matches are outliers of the
+        camera pose but inliers of one other rigid transformation. Outliers from view-dependent
+        appearance (specular highlights) or repeated texture agree on nothing.
+        """
+        if not candidates or not self.config.detection.require_rigid_motion:
+            return candidates
+        segments = measurements.segments
+        matched = static.matched
+        three_d = matched.is_3d
+        point_segment = segments.segment_of_points(len(measurements.points))
+        outlier_pairs = three_d & ~static_inliers[matched.point_measurements]
+        confirmed: list[int] = []
+        for group in merge_adjacent_moving_segments(segments, candidates, self.config.detection.merge_gap_pixels):
+            in_group = outlier_pairs & np.isin(point_segment[matched.point_measurements], group)
+            rows = np.flatnonzero(in_group[three_d])  # 3D pairs come first in the correspondences
+            if len(rows) < self.config.detection.min_segment_features:
+                continue
+            subset = matched.correspondences.subset(point3d=rows, point2d=np.zeros(0, dtype=np.int64),
+                                                    plane=np.zeros(0, dtype=np.int64))
+            ransac = dataclasses.replace(self.config.ransac, min_matches=self.config.detection.min_segment_features,
+                                         min_inlier_ratio=0.5)
+            motion = register(subset, ransac, self.config.noise, self.rng)
+            if not motion.success:
+                continue
+            # The region's motion relative to the static scene, seen from the camera: a small one
+            # is the camera pose's own error over part of the image, not an object that moved.
+            relative = np.linalg.inv(static.result.transformation) @ motion.transformation
+            moved = np.linalg.norm(relative[:3, 3])
+            turned = np.degrees(rotation_angle(relative[:3, :3]))
+            logger.debug("frame %d: segments %s moved %.3f m, %.1f deg (%d of %d outliers agree)",
+                         measurements.frame_index, group, moved, turned, motion.num_inliers, len(rows))
+            detection = self.config.detection
+            if moved >= detection.min_motion or turned >= detection.min_motion_degrees:
+                confirmed.extend(group)
+        return sorted(confirmed)
 
     def _reidentify(self, measurements: FrameMeasurements, group: list[int], group_points: np.ndarray,
                     outcomes: dict[int, ObjectTrackingResult], assignment: FrameAssignment) -> bool:
@@ -679,7 +752,23 @@ class Reconstructor:
         self.depth_views.append((keyframe_id, DepthView(depth, self.static_map.keyframes[-1].T_map_cam, stride)))
         del self.depth_views[:-FREE_SPACE_VIEWS]
 
-    def _free_space_segments(self, frame: Frame, measurements: FrameMeasurements, T_w_c: np.ndarray,
+    def _free_space_counts(self, frame: Frame, measurements: FrameMeasurements,
+                           T_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per segment ``(S,)``: sampled pixels lying in space the latest static keyframes saw
+        as empty (violations), and pixels agreeing with the surface they saw (consistent)."""
+        segments = measurements.segments
+        violations = np.zeros(len(segments), dtype=np.int64)
+        consistent = np.zeros(len(segments), dtype=np.int64)
+        for keyframe_id, view in self.depth_views:
+            view.T_w_c = self.static_map.keyframes[keyframe_id].T_map_cam  # after bundle adjustment
+            closer, agrees = free_space_violations(frame.depth, segments.label_image, T_w_c, self.intrinsics, view,
+                                                   len(segments), self.config.noise,
+                                                   self.config.objects.free_space_margin)
+            violations += closer
+            consistent += agrees
+        return violations, consistent
+
+    def _free_space_segments(self, measurements: FrameMeasurements, violations: np.ndarray, consistent: np.ndarray,
                              static_inliers: np.ndarray) -> list[int]:
         """Segments that lie in space the latest static keyframes saw as empty: something moved
         in (an object that jumped to where the static map has no landmarks of it)."""
@@ -687,14 +776,6 @@ class Reconstructor:
         if not config.free_space_detection or not self.depth_views:
             return []
         segments, points = measurements.segments, measurements.points
-        violations = np.zeros(len(segments), dtype=np.int64)
-        consistent = np.zeros(len(segments), dtype=np.int64)
-        for keyframe_id, view in self.depth_views:
-            view.T_w_c = self.static_map.keyframes[keyframe_id].T_map_cam  # after bundle adjustment
-            closer, agrees = free_space_violations(frame.depth, segments.label_image, T_w_c, self.intrinsics, view,
-                                                   len(segments), self.config.noise, config.free_space_margin)
-            violations += closer
-            consistent += agrees
         min_samples = config.free_space_min_pixels / FREE_SPACE_STRIDE**2
         moving = (violations >= min_samples) & (violations > consistent)
         static_support = np.array([static_inliers[np.asarray(i, dtype=np.int64)].sum() for i in segments.point_indices])
@@ -727,6 +808,40 @@ class Reconstructor:
         if len(retired):
             self.static_map.points.retire(retired)
             logger.debug("static map: %d landmarks retired", len(retired))
+
+    def _retire_vacated_landmarks(self, frame: Frame, T_w_c: np.ndarray) -> None:
+        """Static-map hygiene, geometric: a landmark of the recent keyframes that projects into
+        this frame where the measured surface lies clearly *behind* it has lost its surface (an
+        object it was on moved away). Seen through in ``objects.retire_after_vacated`` frames in
+        a row, it is retired."""
+        config = self.config.objects
+        if config.retire_after_vacated <= 0 or not self.static_map.keyframes:
+            return
+        points = self.static_map.points
+        ids = self.static_map.recent_point_landmarks(self.config.matching.recent_keyframes)
+        if not len(ids):
+            return
+        camera = (points.positions[ids] - T_w_c[:3, 3]) @ T_w_c[:3, :3]
+        z = camera[:, 2]
+        intrinsics = self.intrinsics
+        safe = np.where(z > 1e-3, z, 1.0)
+        u = np.round(intrinsics.fx * camera[:, 0] / safe + intrinsics.cx).astype(np.int64)
+        v = np.round(intrinsics.fy * camera[:, 1] / safe + intrinsics.cy).astype(np.int64)
+        height, width = frame.depth.shape
+        inside = (z > 1e-3) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        measured = np.zeros(len(ids))
+        measured[inside] = frame.depth[v[inside], u[inside]]
+        seen = inside & (measured > 0)
+        noise = self.config.noise
+        margin = np.maximum(config.free_space_margin, noise.inlier_sigmas * noise.sigma_z_coefficient * z**2)
+        through = seen & (measured > z + margin)
+        counts = points.seen_through
+        counts[ids[seen & ~through]] = 0
+        counts[ids[through]] += 1
+        retire = ids[through & (counts[ids] >= config.retire_after_vacated)]
+        if len(retire):
+            points.retire(retire)
+            logger.debug("static map: %d landmarks retired, their surface is gone", len(retire))
 
     def _update_object(self, frame: Frame, measurements: FrameMeasurements, report: FrameReport,
                        outcome: ObjectTrackingResult, assignment: FrameAssignment) -> None:
