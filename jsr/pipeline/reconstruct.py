@@ -902,12 +902,19 @@ class Reconstructor:
         owner = map_.object_id if isinstance(map_, ObjectMap) else 0
         return ownership == owner
 
-    def object_pose(self, object_map: ObjectMap, frame_index: int) -> np.ndarray | None:
-        """``T_w_o`` of an object at a frame where it was tracked, else None."""
-        for index, _, T_w_o in object_map.trajectory:
-            if index == frame_index:
-                return T_w_o
-        return None
+    def object_trajectory(self, object_map: ObjectMap) -> tuple[np.ndarray, np.ndarray]:
+        """Timestamps ``(F,)`` and ``T_w_o`` ``(F, 4, 4)`` of an object in the frames it was
+        tracked, with the camera poses after bundle adjustment (as in ``camera.tum``): the
+        object's pose relative to the camera is what was measured, and it is kept."""
+        reports = {report.frame_index: report for report in self.reports}
+        timestamps, poses = [], []
+        for frame_index, timestamp, T_w_o in object_map.trajectory:
+            report = reports.get(frame_index)
+            if report is not None and report.tracked:
+                T_w_o = self.current_pose(report) @ np.linalg.inv(report.T_w_c) @ T_w_o
+            timestamps.append(timestamp)
+            poses.append(T_w_o)
+        return np.array(timestamps), np.array(poses).reshape(-1, 4, 4)
 
     def current_pose(self, report: FrameReport) -> np.ndarray | None:
         """``T_w_c`` of a tracked frame with the latest keyframe poses (after bundle adjustment)."""

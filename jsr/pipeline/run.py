@@ -105,11 +105,11 @@ class ResultsWriter:
         for map_ in reconstructor.maps:
             self.write_sparse_map(map_, self.out_dir / map_folder(map_))
         for object_map in reconstructor.object_maps:
-            frames = object_map.trajectory
+            timestamps, poses = reconstructor.object_trajectory(object_map)
             write_tum_trajectory(
                 self.out_dir / map_folder(object_map) / "trajectory.tum",
-                np.array([timestamp for _, timestamp, _ in frames]),
-                np.array([T_w_o for _, _, T_w_o in frames]).reshape(-1, 4, 4),
+                timestamps,
+                poses,
                 header=f"object {object_map.object_id}: object-to-world T_w_o in every frame it was tracked; "
                 "world = first camera frame, object frame = camera frame at detection",
             )
