@@ -152,6 +152,7 @@ class ObjectsConfig:
     free_space_detection: bool = True
     free_space_margin: float = 0.05
     free_space_min_pixels: int = 400
+    free_space_share: float = 0.7
 
 
 @dataclass
@@ -269,6 +270,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "objects.free_space_margin": (lambda v: v > 0, "positive"),
     "objects.merge_min_shared_inliers": (lambda v: v >= 1, "at least 1"),
     "objects.free_space_min_pixels": (lambda v: v >= 1, "at least 1"),
+    "objects.free_space_share": (lambda v: 0.5 <= v <= 1, "in [0.5, 1]"),
     "vlad.vocabulary_size": (lambda v: v >= 2, "at least 2"),
     "vlad.max_pairs": (lambda v: v >= 1, "at least 1"),
     "vlad.min_segment_points": (lambda v: v >= 3, "at least 3"),

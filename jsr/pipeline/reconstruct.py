@@ -166,6 +166,7 @@ class Reconstructor:
         # Per-frame ownership images of the frames that gave a keyframe to some map: the dense
         # models fuse only the pixels each map received.
         self.keyframe_masks: dict[int, np.ndarray] = {}
+        self.merged_into: dict[int, int] = {}  # object id -> the id of the map it was merged into
         self._adjacency_cache: np.ndarray | None = None
         self._free_space_cache: tuple[np.ndarray, np.ndarray] | None = None
         self._frame_pose: np.ndarray | None = None  # T_w_c of the frame being processed, if tracked
@@ -422,6 +423,10 @@ class Reconstructor:
                 self.segment_index.remove_map(source_id)
                 inliers[target_id] |= inliers[source_id]
                 merged.add(source_id)
+                self.merged_into[source_id] = target_id
+                for earlier, into in self.merged_into.items():
+                    if into == source_id:
+                        self.merged_into[earlier] = target_id
                 logger.info("frame %d: object %d is object %d (%d shared inliers); maps merged",
                             measurements.frame_index, source_id, target_id, shared)
         return [o for o in outcomes if o.object_map.object_id not in merged]
@@ -777,7 +782,7 @@ class Reconstructor:
             return []
         segments, points = measurements.segments, measurements.points
         min_samples = config.free_space_min_pixels / FREE_SPACE_STRIDE**2
-        moving = (violations >= min_samples) & (violations > consistent)
+        moving = (violations >= min_samples) & (violations >= config.free_space_share * (violations + consistent))
         static_support = np.array([static_inliers[np.asarray(i, dtype=np.int64)].sum() for i in segments.point_indices])
         three_d = np.array([points.has_depth[np.asarray(i, dtype=np.int64)].sum() for i in segments.point_indices])
         moving &= static_support <= 0.2 * np.maximum(three_d, 1)

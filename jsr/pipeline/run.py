@@ -167,6 +167,7 @@ class ResultsWriter:
                  "keyframes": len(m.keyframes), "point_landmarks": m.points.active_count}
                 for m in reconstructor.object_maps
             ],
+            "objects_merged": {str(k): v for k, v in sorted(reconstructor.merged_into.items())},
             "timings": timing_summary,
             "platform": platform.platform(),
         }
