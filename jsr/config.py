@@ -152,7 +152,7 @@ class ObjectsConfig:
     free_space_detection: bool = True
     free_space_margin: float = 0.05
     free_space_min_pixels: int = 400
-    free_space_share: float = 0.7
+    free_space_share: float = 0.6
 
 
 @dataclass
