@@ -145,14 +145,16 @@ class ObjectsConfig:
     grow_segments: bool = True
     retire_object_matches: bool = True
     retire_after_outliers: int = 0
-    retire_after_vacated: int = 2
+    retire_after_vacated: int = 0
     reidentify: bool = True
     merge_maps: bool = True
     merge_min_shared_inliers: int = 5
     free_space_detection: bool = True
-    free_space_margin: float = 0.05
+    free_space_margin: float = 0.1
+    free_space_sigmas: float = 10.0
     free_space_min_pixels: int = 400
     free_space_share: float = 0.6
+    free_space_min_segment_pixels: int = 1000
 
 
 @dataclass
@@ -268,8 +270,10 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "objects.retire_after_outliers": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.retire_after_vacated": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.free_space_margin": (lambda v: v > 0, "positive"),
+    "objects.free_space_sigmas": (lambda v: v > 0, "positive"),
     "objects.merge_min_shared_inliers": (lambda v: v >= 1, "at least 1"),
     "objects.free_space_min_pixels": (lambda v: v >= 1, "at least 1"),
+    "objects.free_space_min_segment_pixels": (lambda v: v >= 1, "at least 1"),
     "objects.free_space_share": (lambda v: 0.5 <= v <= 1, "in [0.5, 1]"),
     "vlad.vocabulary_size": (lambda v: v >= 2, "at least 2"),
     "vlad.max_pairs": (lambda v: v >= 1, "at least 1"),

@@ -21,6 +21,8 @@ from jsr.pipeline.maps import Map
 
 logger = logging.getLogger(__name__)
 
+MIN_FUSED_PIXELS = 100  # a keyframe with fewer valid pixels for a map adds nothing to its model
+
 
 def fuse_keyframes(
     map_: Map,
@@ -59,13 +61,17 @@ def fuse_keyframes(
             mask = pixel_mask(keyframe.keyframe_id)
             if mask is not None:
                 depth[~mask] = 0.0
-        if not np.any(depth > 0):
-            continue
+        if np.count_nonzero((depth > 0) & (depth <= max_depth)) < MIN_FUSED_PIXELS:
+            continue  # nothing (or next to nothing) of this map in this keyframe
         extrinsic = o3c.Tensor(np.linalg.inv(keyframe.T_map_cam), o3c.float64)  # map -> camera
         depth_image = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth)))
         color_image = o3d.t.geometry.Image(o3c.Tensor(frame.color.astype(np.float32) / 255.0))
-        blocks = grid.compute_unique_block_coordinates(depth_image, calibration, extrinsic, 1.0, max_depth)
-        grid.integrate(blocks, depth_image, color_image, calibration, extrinsic, 1.0, max_depth)
+        try:
+            blocks = grid.compute_unique_block_coordinates(depth_image, calibration, extrinsic, 1.0, max_depth)
+            grid.integrate(blocks, depth_image, color_image, calibration, extrinsic, 1.0, max_depth)
+        except RuntimeError as error:  # Open3D refuses a depth image that touches no voxel block
+            logger.warning("%s: keyframe %d not fused (%s)", map_.name, keyframe.keyframe_id,
+                           str(error).splitlines()[0][-120:])
     weight_threshold = float(max(1, min(3, len(map_.keyframes) // 3)))
     mesh = _sorted_mesh(grid.extract_triangle_mesh(weight_threshold=weight_threshold).to_legacy(), o3d)
     mesh.compute_vertex_normals()

@@ -339,11 +339,26 @@ def unsupported_segments(measurements: FrameMeasurements, static_inliers: np.nda
 @dataclass
 class DepthView:
     """A subsampled depth image of a keyframe for free-space tests: ``depth`` ``(h, w)`` metres
-    (0 invalid) at every ``stride``-th pixel, ``T_w_c`` its camera pose."""
+    (0 invalid) at every ``stride``-th pixel, ``T_w_c`` its camera pose. ``near_depth`` is the
+    nearest valid depth within ``(2 r + 1)^2`` samples (``r = near_radius``): space counts as
+    seen empty only where the whole neighbourhood was seen farther away, so that thin structures,
+    depth edges and a colour-to-depth misregistration of a few pixels do not look like violations.
+    """
 
     depth: np.ndarray
     T_w_c: np.ndarray
     stride: int
+    near_radius: int = 1
+    near_depth: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.near_depth is None:
+            import cv2
+
+            far = np.where(self.depth > 0, self.depth, np.float32(1e6)).astype(np.float32)
+            size = 2 * self.near_radius + 1
+            near = cv2.erode(far, np.ones((size, size), np.uint8))
+            self.near_depth = np.where(near < 1e6, near, 0.0).astype(np.float32)
 
 
 def free_space_violations(
@@ -355,6 +370,7 @@ def free_space_violations(
     num_segments: int,
     noise,
     margin: float,
+    sigmas: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per segment ``(S,)`` counts of sampled pixels that lie in space an earlier view saw as
     empty (*violations*) and of pixels that agree with that view (*consistent*).
@@ -387,10 +403,16 @@ def free_space_violations(
     inside = ahead & (pu >= 0) & (pu < width) & (pv >= 0) & (pv < height)
     seen = np.zeros(len(zs))
     seen[inside] = view.depth[pv[inside], pu[inside]]
+    nearest = np.zeros(len(zs))
+    nearest[inside] = view.near_depth[pv[inside], pu[inside]]
     usable = inside & (seen > 0)
-    threshold = np.maximum(margin, noise.inlier_sigmas * noise.sigma_z_coefficient * seen**2)
-    closer = usable & (in_view[:, 2] < seen - threshold)
-    agrees = usable & (np.abs(in_view[:, 2] - seen) <= threshold)
+    sigma = noise.sigma_z_coefficient * seen**2
+    threshold = np.maximum(margin, (noise.inlier_sigmas if sigmas is None else sigmas) * sigma)
+    closer = usable & (nearest > 0) & (in_view[:, 2] < nearest - threshold)
+    # agreement uses the registration's tight inlier threshold: between it and the violation
+    # margin a pixel is neither (uncertain)
+    agrees = usable & (np.abs(in_view[:, 2] - seen) <= np.maximum(noise.min_inlier_threshold,
+                                                                   noise.inlier_sigmas * sigma))
     segment = labels[rows, cols]
     np.add.at(violations, segment[closer], 1)
     np.add.at(consistent, segment[agrees], 1)

@@ -29,6 +29,7 @@ from jsr.io.dataset import Frame
 from jsr.pipeline.bundle import BundleScheduler
 from jsr.pipeline.frontend import FrontEnd
 from jsr.pipeline.maps import Map
+from jsr.pipeline.matching import guided_match
 from jsr.pipeline.measurements import FrameMeasurements
 from jsr.pipeline.association import (
     MatchedFrame,
@@ -478,7 +479,7 @@ class Reconstructor:
         # the static map holds few landmarks on it (a table top the object stands on).
         violations, consistent = self._free_space(frame, measurements)
         sampled = violations + consistent
-        min_samples = self.config.objects.free_space_min_pixels / FREE_SPACE_STRIDE**2
+        min_samples = self._free_space_min_samples()
         candidates &= (sampled < min_samples) | (consistent < 0.5 * sampled)
         return grow_region(seeds, candidates, self._adjacency(frame, measurements))
 
@@ -555,16 +556,19 @@ class Reconstructor:
         inliers, _ = inlier_mask(static.matched, static.result, num_points, len(measurements.planes))
         by_outliers = detect_moving_segments(segments, matched, inliers, self.config.detection,
                                              exclude=assignment.point_owner > 0)
+        by_outliers = self._not_in_place(measurements, static, by_outliers, inliers, report.T_w_c, keep_unknown=False)
         violations, consistent = self._free_space(frame, measurements)
         if self.config.objects.free_space_detection:
-            # A region whose surface is where the static keyframes saw one, and not in front of
-            # it, has not moved: its outliers are mismatches (repeated texture matches the next
-            # cabinet door over with one consistent shift).
+            # A region whose surface is where the static keyframes saw one has most likely not
+            # moved either (on real data, outliers that agree on a motion also come from a
+            # camera pose that is off over part of the image).
             sampled = violations + consistent
-            min_samples = self.config.objects.free_space_min_pixels / FREE_SPACE_STRIDE**2
+            min_samples = self._free_space_min_samples()
             by_outliers = [s for s in by_outliers if sampled[s] < min_samples or consistent[s] < 0.5 * sampled[s]]
         by_outliers = self._rigidly_moved(measurements, static, by_outliers, inliers)
         by_free_space = self._free_space_segments(measurements, violations, consistent, inliers)
+        by_free_space = self._not_in_place(measurements, static, by_free_space, inliers, report.T_w_c,
+                                           keep_unknown=True)
         moving = sorted(set(by_outliers) | set(by_free_space))
         moving = [s for s in moving if assignment.segment_owner[s] == 0]
         if not moving:
@@ -584,6 +588,44 @@ class Reconstructor:
             if object_map is not None:
                 report.objects_created.append(object_map.object_id)
                 report.objects_tracked.append(object_map.object_id)
+
+    def _outliers_in_place(self, measurements: FrameMeasurements, static: StaticRegistration, segment: int,
+                           static_inliers: np.ndarray, T_w_c: np.ndarray) -> tuple[int, int]:
+        """``(found, total)``: of the static landmarks matched as outliers in ``segment``, how
+        many are still where the static map has them. Each is projected with the camera pose
+        and looked for among the frame's keypoints near its projection (guided matching). A
+        landmark found there has not moved (its outlier match went to a look-alike, such as the
+        next cabinet door); one on an object that moved, even one that turned in place, is
+        not found: its spot looks different now."""
+        matched = static.matched
+        point_segment = measurements.segments.segment_of_points(len(measurements.points))
+        outlier = ~static_inliers[matched.point_measurements]
+        rows = np.flatnonzero(outlier & (point_segment[matched.point_measurements] == segment))
+        landmarks = np.unique(matched.point_landmarks[rows])
+        if not len(landmarks):
+            return 0, 0
+        points = measurements.points
+        found = guided_match(points.pixels, points.descriptors, self.static_map.points.positions[landmarks],
+                             self.static_map.points.descriptors[landmarks], T_w_c, self.intrinsics,
+                             self.config.matching.guided_radius_px, self.config.matching.ratio_test,
+                             self.config.matching.max_descriptor_distance)
+        return len(found), len(landmarks)
+
+    def _not_in_place(self, measurements: FrameMeasurements, static: StaticRegistration, candidates: list[int],
+                      static_inliers: np.ndarray, T_w_c: np.ndarray, keep_unknown: bool) -> list[int]:
+        """The candidate segments fewer than half of whose outlier landmarks are still in place
+        (:meth:`_outliers_in_place`); ``keep_unknown`` keeps segments without outlier landmarks."""
+        kept = []
+        for segment in candidates:
+            found, total = self._outliers_in_place(measurements, static, segment, static_inliers, T_w_c)
+            if total == 0 and not keep_unknown:
+                continue
+            if total and found >= 0.5 * total:
+                logger.debug("frame %d: segment %d: %d of %d outlier landmarks are still in place",
+                             measurements.frame_index, segment, found, total)
+                continue
+            kept.append(segment)
+        return kept
 
     def _rigidly_moved(self, measurements: FrameMeasurements, static: StaticRegistration, candidates: list[int],
                        static_inliers: np.ndarray) -> list[int]:
@@ -762,16 +804,33 @@ class Reconstructor:
         """Per segment ``(S,)``: sampled pixels lying in space the latest static keyframes saw
         as empty (violations), and pixels agreeing with the surface they saw (consistent)."""
         segments = measurements.segments
-        violations = np.zeros(len(segments), dtype=np.int64)
-        consistent = np.zeros(len(segments), dtype=np.int64)
+        per_view = []
         for keyframe_id, view in self.depth_views:
             view.T_w_c = self.static_map.keyframes[keyframe_id].T_map_cam  # after bundle adjustment
-            closer, agrees = free_space_violations(frame.depth, segments.label_image, T_w_c, self.intrinsics, view,
-                                                   len(segments), self.config.noise,
-                                                   self.config.objects.free_space_margin)
-            violations += closer
-            consistent += agrees
-        return violations, consistent
+            per_view.append(free_space_violations(frame.depth, segments.label_image, T_w_c, self.intrinsics, view,
+                                                  len(segments), self.config.noise,
+                                                  self.config.objects.free_space_margin,
+                                                  self.config.objects.free_space_sigmas))
+        if not per_view:
+            zeros = np.zeros(len(segments), dtype=np.int64)
+            return zeros, zeros.copy()
+        violations = np.stack([closer for closer, _ in per_view])
+        consistent = np.stack([agrees for _, agrees in per_view])
+        # A violation must be seen from every view that sees the segment: one keyframe with a
+        # poor pose (or depth) would otherwise put whole surfaces "in front" of themselves.
+        sampled = violations + consistent
+        covering = sampled > 0
+        combined = np.where(covering.any(axis=0),
+                            np.min(np.where(covering, violations, np.iinfo(np.int64).max), axis=0), 0)
+        return combined, consistent.sum(axis=0)
+
+    @property
+    def _area_scale(self) -> float:
+        """Image area relative to 640x480 (pixel-count thresholds are given for 640x480)."""
+        return (self.intrinsics.width * self.intrinsics.height) / (640 * 480)
+
+    def _free_space_min_samples(self) -> float:
+        return self.config.objects.free_space_min_pixels * self._area_scale / FREE_SPACE_STRIDE**2
 
     def _free_space_segments(self, measurements: FrameMeasurements, violations: np.ndarray, consistent: np.ndarray,
                              static_inliers: np.ndarray) -> list[int]:
@@ -781,8 +840,10 @@ class Reconstructor:
         if not config.free_space_detection or not self.depth_views:
             return []
         segments, points = measurements.segments, measurements.points
-        min_samples = config.free_space_min_pixels / FREE_SPACE_STRIDE**2
-        moving = (violations >= min_samples) & (violations >= config.free_space_share * (violations + consistent))
+        moving = (violations >= self._free_space_min_samples()) & (
+            violations >= config.free_space_share * (violations + consistent))
+        # tiny segments (thin structures, depth edges) are where depth noise looks like motion
+        moving &= np.asarray(segments.pixel_counts) >= config.free_space_min_segment_pixels * self._area_scale
         static_support = np.array([static_inliers[np.asarray(i, dtype=np.int64)].sum() for i in segments.point_indices])
         three_d = np.array([points.has_depth[np.asarray(i, dtype=np.int64)].sum() for i in segments.point_indices])
         moving &= static_support <= 0.2 * np.maximum(three_d, 1)
@@ -838,7 +899,8 @@ class Reconstructor:
         measured[inside] = frame.depth[v[inside], u[inside]]
         seen = inside & (measured > 0)
         noise = self.config.noise
-        margin = np.maximum(config.free_space_margin, noise.inlier_sigmas * noise.sigma_z_coefficient * z**2)
+        # the free-space test's margins: only a surface clearly gone counts, not a depth edge
+        margin = np.maximum(config.free_space_margin, config.free_space_sigmas * noise.sigma_z_coefficient * z**2)
         through = seen & (measured > z + margin)
         counts = points.seen_through
         counts[ids[seen & ~through]] = 0
