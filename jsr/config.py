@@ -111,6 +111,7 @@ class RansacConfig:
     refinement: str = "image"
     prior_translation: float = 0.0
     prior_rotation_degrees: float = 0.0
+    depth_fallback: float = 3.0
 
 
 @dataclass
@@ -258,6 +259,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "ransac.prior_translation": (lambda v: v >= 0, "at least 0 (0: no motion prior)"),
     "ransac.prior_rotation_degrees": (lambda v: v >= 0, "at least 0 (0: no motion prior)"),
     "ransac.refine_rounds": (lambda v: v >= 0, "at least 0 (0 disables refinement)"),
+    "ransac.depth_fallback": (lambda v: v == 0 or v >= 1, "0 (off) or at least 1"),
     "keyframes.translation": (lambda v: v >= 0, "at least 0"),
     "keyframes.rotation_degrees": (lambda v: v >= 0, "at least 0"),
     "detection.segment_outlier_ratio": (lambda v: 0 < v <= 1, "in (0, 1]"),

@@ -311,3 +311,38 @@ def test_nan_rows_do_not_break_registration() -> None:
     result = register(corr, RANSAC, NOISE, np.random.default_rng(0))
     _check_pose(result, truth)
     assert not result.inliers_point3d[:10].any()
+
+
+def test_depth_fallback_keeps_far_matches_with_biased_depth() -> None:
+    """Image mode: far 3D matches whose pixel is right but whose depth is off by twice the
+    threshold (a systematic sensor error) stay inliers with ransac.depth_fallback and do not
+    bias the pose; near matches with a depth 3 cm off and gross mismatches stay outliers."""
+    rng = np.random.default_rng(7)
+    truth = _pose(rng)
+    far = _camera_points(rng, 300)
+    far[:, :] *= (rng.uniform(2.0, 4.0, 300) / far[:, 2])[:, None]
+    near = _camera_points(rng, 100)
+    near[:, :] *= (rng.uniform(0.6, 1.2, 100) / near[:, 2])[:, None]
+    points = np.concatenate([far, near])
+    measured = _measure_3d(rng, points)
+    biased_far = np.arange(0, 90)  # 30% of the far points: depth 6 sigma_Z too deep
+    biased_near = np.arange(300, 330)  # 30% of the near points: 3 cm too deep
+    scale = np.ones(len(points))
+    scale[biased_far] = 1.0 + 6.0 * SIGMA_Z * points[biased_far, 2]
+    scale[biased_near] = 1.0 + 0.03 / points[biased_near, 2]
+    measured *= scale[:, None]  # along the ray: the pixel is unchanged
+    landmarks = _to_map(truth, points)
+    wrong = np.arange(330, 360)
+    landmarks[wrong] = _to_map(truth, _camera_points(rng, len(wrong)))
+    corr = Correspondences(frame_points=measured, map_points=landmarks, focal_length=FX)
+
+    with_fallback = register(corr, dataclasses.replace(RANSAC, depth_fallback=3.0), NOISE, np.random.default_rng(0))
+    _check_pose(with_fallback, truth)
+    assert with_fallback.inliers_point3d[biased_far].mean() > 0.95
+    assert not with_fallback.inliers_point3d[biased_near].any()
+    assert not with_fallback.inliers_point3d[wrong].any()
+
+    strict = register(corr, dataclasses.replace(RANSAC, depth_fallback=0.0), NOISE, np.random.default_rng(0))
+    _check_pose(strict, truth)
+    assert strict.inliers_point3d[biased_far].mean() < 0.05
+    assert not strict.inliers_point3d[biased_near].any()

@@ -14,6 +14,16 @@ Point thresholds follow the paper, ``sigma = max(noise.min_inlier_threshold,
 noise.inlier_sigmas * sigma_Z(Z))`` with ``sigma_Z = noise.sigma_z_coefficient * Z^2``, ``Z``
 the depth of the 3D measurement or, for 2D-3D pairs, of the landmark moved into the camera.
 
+Depth fallback (image mode, ``ransac.depth_fallback`` = ``k > 0``). The noise model gives the
+random error of a structured-light sensor; beyond about 1.5 m, where ``3 sigma_Z`` exceeds the
+1 cm floor, the sensor's systematic depth error (which varies over the image and grows with
+range) is of the same size, so a correct match seen from another viewpoint often fails the
+depth test while its pixel agrees. Such a 3D match, with a depth error below ``k`` thresholds,
+stays an inlier but constrains the pose like a 2D-3D match: through its reprojection only.
+Nearer matches, whose 1 cm threshold already leaves a wide margin over the noise, keep the
+strict test. Measured on bonn_crowd200 (200 frames, 3 seeds): camera ATE 9.6 cm without,
+4.5 cm with; redkitchen300 (300 frames, 5 seeds): 2.46 cm without, 2.68 cm with.
+
 Counting rule. Every correspondence counts as one match, a plane pair included (a plane is
 one measurement of the frame even though it summarises many pixels), so
 ``num_matches = A + B + C``. RANSAC is not run when ``num_matches < ransac.min_matches``.
@@ -293,6 +303,12 @@ class _Problem:
         # paper's sigma = max(1 cm, 3 sigma_Z). Without one, the paper's 3D distance test.
         self.focal_length = corr.focal_length
         self.pixel_threshold = noise_cfg.inlier_sigmas * noise_cfg.pixel_sigma
+        # Depth-error bound (in thresholds) up to which a 3D pair may fall back to its
+        # reprojection: ransac.depth_fallback beyond the 1 cm floor, 1 (no fallback) within it.
+        beyond_floor = self.threshold3 > noise_cfg.min_inlier_threshold * (1.0 + 1e-9)
+        fallback = ransac_cfg.depth_fallback if ransac_cfg.depth_fallback > 0 else 1.0
+        self.depth_bound = np.where(beyond_floor, max(fallback, 1.0), 1.0)
+        self.depth_fallback = fallback > 1.0
         with np.errstate(divide="ignore", invalid="ignore"):
             self.measured_uv = self.p[:, :2] / self.p[:, 2:3]
         self.bearings = _unit_rows(corr.frame_bearings)
@@ -351,9 +367,17 @@ class _Problem:
             uv = camera[:, :, :2] / np.where(front, z, 1.0)[:, :, None]
             reprojection = np.linalg.norm(uv - self.measured_uv[None], axis=2) * (self.focal_length / self.pixel_threshold)
             depth_error = np.abs(z - self.p[None, :, 2]) / self.threshold3[None, :]
-            scaled = np.where(front, np.maximum(reprojection, depth_error), np.inf)
-            inliers = scaled < 1.0
-            cost += np.fmin(scaled * scaled, 1.0).sum(axis=1)
+            if self.depth_fallback:
+                # inlier: the pixel agrees and the depth is within its (fallback) bound; the
+                # cost weighs pixel and depth agreement half each, so a pair consistent in
+                # both beats one consistent in its pixel only
+                reprojection = np.where(front & (depth_error < self.depth_bound[None, :]), reprojection, np.inf)
+                inliers = reprojection < 1.0
+                cost += 0.5 * (np.fmin(reprojection**2, 1.0) + np.fmin(depth_error**2, 1.0)).sum(axis=1)
+            else:
+                scaled = np.where(front, np.maximum(reprojection, depth_error), np.inf)
+                inliers = scaled < 1.0
+                cost += np.fmin(scaled * scaled, 1.0).sum(axis=1)
             counts[:, 0] = inliers.sum(axis=1)
             masks.append(inliers)
         elif a:
@@ -603,7 +627,8 @@ def _refine_pose_image_space(
     reprojection residuals (landmark projected with the pose vs the measured pixel, in units of
     ``pixel_sigma``) and one depth residual (in units of the combined depth noise of measurement
     and landmark); each 2D-3D pair gives two reprojection residuals; planes as in
-    :func:`_refine_pose`. The cost is minimised with a Huber loss (scale 2 sigma).
+    :func:`_refine_pose`. Inliers kept by the depth fallback (see the module docstring) get no
+depth residual. The cost is minimised with a Huber loss (scale 2 sigma).
 
     With a ``prior`` pose (the motion model's prediction) and ``prior_sigmas`` =
     ``(rotation radians, translation metres)`` both positive, six more residuals pull the pose
@@ -624,6 +649,9 @@ def _refine_pose_image_space(
         problem.noise.sigma_z_coefficient * p[:, 2] ** 2, problem.noise.min_inlier_threshold / problem.noise.inlier_sigmas
     )
     sa, sd = problem.angle_threshold, problem.distance_threshold
+    # Inliers by the depth fallback (depth off by more than the threshold at the start pose)
+    # constrain the pose through their reprojection only.
+    depth_weight = (np.abs(((q - t0) @ r0)[:, 2] - p[:, 2]) < problem.threshold3[m3]).astype(float)
 
     def residuals(x: np.ndarray) -> np.ndarray:
         rotation = Rotation.from_rotvec(x[:3]).as_matrix() @ r0
@@ -632,7 +660,7 @@ def _refine_pose_image_space(
         z = np.maximum(landmarks[:, 2], 1e-6)
         parts = [
             ((landmarks[:, :2] / z[:, None] - measured_uv) / angular_sigma).ravel(),
-            (landmarks[:, 2] - p[:, 2]) / depth_sigma,
+            depth_weight * (landmarks[:, 2] - p[:, 2]) / depth_sigma,
         ]
         landmarks_2d = (x2 - translation) @ rotation
         z2 = np.maximum(landmarks_2d[:, 2], 1e-6)
