@@ -130,6 +130,7 @@ class DetectionConfig:
     min_segment_features: int = 5
     significance: float = 0.01
     require_rigid_motion: bool = True
+    free_space_veto: bool = True
     min_motion: float = 0.03
     min_motion_degrees: float = 3.0
     merge_gap_pixels: int = 2
@@ -144,12 +145,16 @@ class ObjectsConfig:
     segment_registration: str = "always"
     segment_completion: bool = True
     grow_segments: bool = True
+    grow_inside_extent: bool = True
+    extent_margin: float = 0.03
+    extent_share: float = 0.5
     retire_object_matches: bool = True
     retire_after_outliers: int = 0
     retire_after_vacated: int = 0
     reidentify: bool = True
     merge_maps: bool = True
     merge_min_shared_inliers: int = 5
+    map_merge_min_inliers: int = 12
     free_space_detection: bool = True
     free_space_margin: float = 0.1
     free_space_sigmas: float = 10.0
@@ -272,8 +277,11 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "objects.retire_after_outliers": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.retire_after_vacated": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.free_space_margin": (lambda v: v > 0, "positive"),
+    "objects.extent_margin": (lambda v: v >= 0, "at least 0"),
+    "objects.extent_share": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "objects.free_space_sigmas": (lambda v: v > 0, "positive"),
     "objects.merge_min_shared_inliers": (lambda v: v >= 1, "at least 1"),
+    "objects.map_merge_min_inliers": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.free_space_min_pixels": (lambda v: v >= 1, "at least 1"),
     "objects.free_space_min_segment_pixels": (lambda v: v >= 1, "at least 1"),
     "objects.free_space_share": (lambda v: 0.5 <= v <= 1, "in [0.5, 1]"),

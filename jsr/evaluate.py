@@ -32,6 +32,7 @@ predicted pixel) are ``None``.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import re
@@ -605,16 +606,36 @@ def _objects_section(
     return section, matches
 
 
+def _merged_ids(results_dir: Path) -> dict[int, int]:
+    """``summary.json``'s ``objects_merged``: object id -> the id of the map it became part of
+    (masks written before a merge carry the old id)."""
+    path = results_dir / "summary.json"
+    if not path.is_file():
+        return {}
+    try:
+        merged = json.loads(path.read_text()).get("objects_merged") or {}
+        return {int(source): int(target) for source, target in merged.items()}
+    except (ValueError, AttributeError, TypeError):
+        logger.warning("%s: unreadable objects_merged; masks are taken as written", path)
+        return {}
+
+
 def _masks_section(results_dir: Path, labels: dict[str, Path], matches: list[ObjectPoseError]) -> dict | None:
     masks = _png_stems(results_dir / "masks")
     if not masks or not labels:
         return None
+    relabel = np.arange(256, dtype=np.int64)
+    for source, target in _merged_ids(results_dir).items():
+        if 0 <= source < 256 and 0 <= target < 256:
+            relabel[source] = target
     stems = [stem for stem in masks if stem in labels]
     logger.info("masks: %d of %d mask files have a label image", len(stems), len(masks))
 
     def pairs():
         for stem in stems:
             mask = _read_index_image(masks[stem], "mask")
+            if mask.max(initial=0) < 256:
+                mask = relabel[mask]
             label = _read_index_image(labels[stem], "label image")
             if mask.shape != label.shape:
                 raise InputError(f"mask {masks[stem]} is {mask.shape[1]}x{mask.shape[0]} but its label image is "

@@ -293,3 +293,119 @@ def test_complete_segments_needs_a_majority_of_inliers():
     evidence = np.array([True, True, True, True, True, True, False, True])
     owners = complete_segments(point_segment, 3, point_owner, evidence, [5], min_votes=2)
     assert owners.tolist() == [5, 0, 0]  # segment 1: 1 object vote against 2 static; segment 2: too few
+
+
+def _box_landmarks(rng, count=60):
+    """``(count, 3)`` points on the faces of a 20 x 16 x 12 cm box centred at the origin."""
+    half = np.array([0.10, 0.08, 0.06])
+    points = rng.uniform(-1, 1, (count, 3)) * half
+    face = rng.integers(0, 3, count)
+    points[np.arange(count), face] = np.sign(rng.uniform(-1, 1, count)) * half[face]
+    return points
+
+
+def _object_map(object_id, positions, descriptors):
+    from jsr.pipeline.measurements import PointMeasurements
+    from jsr.pipeline.objects import ObjectMap
+
+    count = len(positions)
+    points = PointMeasurements(pixels=np.zeros((count, 2)), points=positions, has_depth=np.ones(count, bool),
+                               bearings=positions / np.linalg.norm(positions, axis=1, keepdims=True),
+                               sigma_z=np.full(count, 0.002), descriptors=descriptors.astype(np.float32))
+    object_map = ObjectMap(object_id, created_at_frame=object_id * 10)
+    object_map.add_keyframe(object_id * 10, float(object_id), np.eye(4), points, np.arange(count),
+                            np.full(count, -1), np.zeros((count, 3), np.uint8))
+    object_map.trajectory.append((object_id * 10, float(object_id), np.eye(4)))
+    return object_map
+
+
+def test_two_maps_of_one_object_register_and_merge():
+    from scipy.spatial.transform import Rotation
+
+    from jsr.pipeline.objects import merge_object_maps, register_maps
+
+    rng = np.random.default_rng(3)
+    config = load_config(None, [])
+    box = _box_landmarks(rng, 80) + [0.0, 0.0, 1.0]  # the box 1 m in front of map 1's camera
+    descriptors = rng.random((80, 128))
+    T_1_2 = np.eye(4)
+    T_1_2[:3, :3] = Rotation.from_rotvec([0.1, 1.2, -0.2]).as_matrix()
+    T_1_2[:3, 3] = [0.3, -0.1, 0.2]
+    # map 2 saw landmarks 30-79 (its first view showed other faces first), in its own frame
+    in_map_2 = (box[30:] - T_1_2[:3, 3]) @ T_1_2[:3, :3] + rng.normal(0, 0.002, (50, 3))
+    first = _object_map(1, box[:60], descriptors[:60])
+    second = _object_map(2, in_map_2, descriptors[30:])
+    result = register_maps(first, second, config, np.random.default_rng(0))
+    assert result is not None and result.success and result.num_inliers >= 25
+    np.testing.assert_allclose(result.transformation, T_1_2, atol=0.01)
+    merge_object_maps(first, second, result.transformation)
+    assert len(first.keyframes) == 2 and len(first.points) == 110
+    np.testing.assert_allclose(first.points.positions[60:], box[30:], atol=0.01)  # in map 1's frame
+    # a different object (other descriptors) does not register
+    other = _object_map(3, _box_landmarks(rng, 50) + [0, 0, 1.5], rng.random((50, 128)))
+    stranger = register_maps(first, other, config, np.random.default_rng(0))
+    assert stranger is None or not stranger.success
+
+
+def test_segments_inside_extent_take_faces_not_the_table():
+    from jsr.pipeline.objects import segments_inside_extent
+
+    rng = np.random.default_rng(4)
+    intrinsics = SimpleNamespace(fx=300.0, fy=300.0, cx=80.0, cy=60.0)
+    # a box front face at z = 1.0 (x, y in +-0.1) whose landmarks span 12 cm in depth
+    landmarks = _box_landmarks(rng, 80) * [1.0, 1.25, 1.0] + [0.0, 0.0, 1.06]
+    depth = np.full((120, 160), 1.0, dtype=np.float32)
+    labels = np.full((120, 160), 1, dtype=np.int32)  # segment 1: a wall at 1 m, far wider than the box
+    u, v = np.meshgrid(np.arange(160), np.arange(120))
+    face = (np.abs(u - 80) < 28) & (np.abs(v - 60) < 28)  # |x|, |y| < 9.3 cm at 1 m
+    labels[face] = 0
+    inside = segments_inside_extent(labels, depth, intrinsics, np.eye(4), landmarks, _Noise(), 2,
+                                    margin=0.03, min_share=0.5)
+    assert inside.tolist() == [True, False]
+    # seen from an object frame in which the box is elsewhere, nothing is inside
+    moved = np.eye(4)
+    moved[:3, 3] = [0.5, 0.0, 0.0]
+    assert not segments_inside_extent(labels, depth, intrinsics, moved, landmarks, _Noise(), 2, 0.03, 0.5).any()
+
+
+def test_unlabelled_pixels_take_the_owner_of_most_neighbours():
+    from jsr.pipeline.reconstruct import fill_unlabelled
+
+    ownership = np.zeros((40, 40), dtype=np.uint8)
+    ownership[10:30, 10:30] = 2
+    unlabelled = np.zeros((40, 40), dtype=bool)
+    unlabelled[20, 20] = unlabelled[5, 5] = True  # a dropout inside the object, one in the background
+    unlabelled[10:30, 29:31] = True  # a strip along the object's right edge: half object, half not
+    ownership[unlabelled] = 0
+    filled = fill_unlabelled(ownership, unlabelled, radius=2)
+    assert filled[20, 20] == 2 and filled[5, 5] == 0
+    assert filled[20, 29] == 2 and filled[20, 30] == 0  # nearer the object: object; beyond: not
+    assert np.array_equal(filled[~unlabelled], ownership[~unlabelled])
+
+
+def test_merging_keeps_ids_masks_and_tracking_state_consistent():
+    from jsr.io.camera import CameraIntrinsics
+
+    rng = np.random.default_rng(5)
+    reconstructor = Reconstructor(load_config(None, []), CameraIntrinsics(300.0, 300.0, 80.0, 60.0, 160, 120))
+    try:
+        box = _box_landmarks(rng, 40) + [0.0, 0.0, 1.0]
+        first, second = _object_map(1, box, rng.random((40, 128))), _object_map(2, box, rng.random((40, 128)))
+        reconstructor.object_maps = [first, second]
+        reconstructor._next_object_id = 3
+        mask = np.zeros((120, 160), np.uint8)
+        mask[10:20, 10:20] = 2
+        reconstructor.keyframe_masks[20] = mask  # map 2's keyframe is frame 20
+        second.last_T_o_c = np.eye(4)
+        second.last_T_w_o = np.eye(4)
+        T_1_2 = np.eye(4)
+        T_1_2[:3, 3] = [0.1, 0.0, 0.0]
+        reconstructor._merge_maps(first, second, T_1_2, 25, "test")
+        assert reconstructor.object_maps == [first]
+        assert reconstructor.merged_into == {2: 1}
+        assert set(np.unique(reconstructor.keyframe_masks[20])) == {0, 1}  # map 2's pixels are map 1's now
+        np.testing.assert_allclose(first.last_T_o_c, T_1_2)  # map 2 saw the object last: map 1 goes on from there
+        assert [index for index, _, _ in first.trajectory] == [10, 20]
+        assert reconstructor._next_object_id == 3  # a new map gets id 3, not the freed 2
+    finally:
+        reconstructor.close()

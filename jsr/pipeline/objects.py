@@ -31,8 +31,9 @@ from jsr.pipeline.association import (
     match_frame_to_map,
 )
 from jsr.pipeline.maps import Map
+from jsr.pipeline.matching import match_descriptors
 from jsr.pipeline.measurements import FrameMeasurements
-from jsr.pipeline.registration import RegistrationResult, register
+from jsr.pipeline.registration import Correspondences, RegistrationResult, register
 from jsr.pipeline.vlad import SegmentIndex, VladVocabulary
 
 logger = logging.getLogger(__name__)
@@ -321,18 +322,58 @@ def grow_region(seeds: list[int], candidates: np.ndarray, adjacency: np.ndarray)
     return sorted(region)
 
 
+def segments_inside_extent(label_image: np.ndarray, depth: np.ndarray, intrinsics, T_o_c: np.ndarray,
+                           landmarks: np.ndarray, noise, num_segments: int, margin: float, min_share: float,
+                           stride: int = 4, min_samples: int = 10) -> np.ndarray:
+    """``(S,)`` bool: segments whose surface lies inside the object's extent, the convex hull of
+    its ``(L, 3)`` landmarks (object frame), widened by the inlier threshold ``max(1 cm,
+    3 sigma_Z)``: at least ``min_share`` of their sampled pixels (every ``stride``-th, with
+    depth; at least ``min_samples`` of them) moved into the object frame with ``T_o_c`` fall
+    inside. A face of a box seen at a grazing angle, whose keypoints have no reliable depth,
+    lies on the hull of the landmarks of the faces next to it; the table the box stands on
+    reaches far outside it.
+    """
+    from scipy.spatial import ConvexHull, QhullError
+
+    result = np.zeros(num_segments, dtype=bool)
+    landmarks = np.asarray(landmarks, dtype=float).reshape(-1, 3)
+    if len(landmarks) < 8 or num_segments == 0:
+        return result
+    try:
+        hull = ConvexHull(landmarks)
+    except (QhullError, ValueError):  # flat or degenerate: no volume to be inside of
+        return result
+    labels = np.asarray(label_image)[::stride, ::stride]
+    z = np.asarray(depth, dtype=np.float64)[::stride, ::stride]
+    rows, cols = np.nonzero((labels >= 0) & (z > 0))
+    if not len(rows):
+        return result
+    zs = z[rows, cols]
+    u, v = cols * stride, rows * stride
+    camera = np.column_stack([(u - intrinsics.cx) / intrinsics.fx * zs, (v - intrinsics.cy) / intrinsics.fy * zs, zs])
+    in_object = camera @ T_o_c[:3, :3].T + T_o_c[:3, 3]
+    outside = np.max(in_object @ hull.equations[:, :3].T + hull.equations[:, 3], axis=1)  # > 0: outside
+    margin = np.maximum(margin, noise.inlier_sigmas * noise.sigma_z_coefficient * zs**2)
+    segment = labels[rows, cols]
+    samples = np.bincount(segment, minlength=num_segments)
+    inside = np.bincount(segment, weights=(outside <= margin).astype(float), minlength=num_segments)
+    return (samples >= min_samples) & (inside >= min_share * np.maximum(samples, 1))
+
+
 def unsupported_segments(measurements: FrameMeasurements, static_inliers: np.ndarray, min_points: int,
                          max_static_share: float = 0.2) -> np.ndarray:
     """``(S,)`` bool: segments with at least ``min_points`` 3D point features of which at most
-    ``max_static_share`` are inliers of the static registration: nothing says they are static.
-    Featureless segments are never unsupported (there is no evidence either way)."""
+    ``max_static_share``, and fewer than ``min_points``, are inliers of the static registration:
+    nothing says they are static. Featureless segments are never unsupported (there is no
+    evidence either way)."""
     segments, points = measurements.segments, measurements.points
     result = np.zeros(len(segments), dtype=bool)
     for segment, indices in enumerate(segments.point_indices):
         indices = np.asarray(indices, dtype=np.int64)
         three_d = int(points.has_depth[indices].sum())
         if three_d >= min_points:
-            result[segment] = static_inliers[indices].sum() <= max_static_share * three_d
+            static = int(static_inliers[indices].sum())
+            result[segment] = static <= max_static_share * three_d and static < min_points
     return result
 
 
@@ -417,6 +458,33 @@ def free_space_violations(
     np.add.at(violations, segment[closer], 1)
     np.add.at(consistent, segment[agrees], 1)
     return violations, consistent
+
+
+def register_maps(target: ObjectMap, source: ObjectMap, config: Config, rng: np.random.Generator
+                  ) -> RegistrationResult | None:
+    """``T_target_source`` between two object maps from their point landmarks alone: the
+    active landmarks of ``source`` are matched to those of ``target`` by descriptor (ratio
+    test, cross-checked) and registered 3D-3D by RANSAC with the paper's thresholds. Two maps
+    of one object (started apart because a jump turned a side the first had never seen to the
+    camera) share the landmarks of every side both have seen since, whether or not they were
+    ever tracked in the same frame. None when there are too few matches to try.
+
+    A landmark's inlier threshold uses its distance from its map's origin (the camera that
+    started the map) as the depth it was measured at.
+    """
+    source_ids = np.flatnonzero(source.points.active)
+    target_ids = np.flatnonzero(target.points.active)
+    if min(len(source_ids), len(target_ids)) < config.ransac.min_matches:
+        return None
+    pairs = match_descriptors(source.points.descriptors[source_ids], target.points.descriptors[target_ids],
+                              config.matching.ratio_test, mutual=True)
+    if len(pairs) < config.ransac.min_matches:
+        return None
+    source_points = source.points.positions[source_ids[pairs[:, 0]]]
+    correspondences = Correspondences(frame_points=source_points,
+                                      map_points=target.points.positions[target_ids[pairs[:, 1]]],
+                                      point_depths=np.linalg.norm(source_points, axis=1))
+    return register(correspondences, config.ransac, config.noise, rng)
 
 
 def merge_object_maps(target: ObjectMap, source: ObjectMap, T_target_source: np.ndarray) -> np.ndarray:

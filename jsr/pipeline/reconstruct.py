@@ -39,7 +39,7 @@ from jsr.pipeline.association import (
     sample_colors,
 )
 from jsr.pipeline.classify import ObjectRegistration, classify_measurements, segment_of_planes
-from jsr.pipeline.detection import detect_moving_segments, merge_adjacent_moving_segments
+from jsr.pipeline.detection import detect_moving_segments, merge_adjacent_moving_segments, segment_outlier_stats
 from jsr.pipeline.objects import (
     ObjectMap,
     ObjectRegistrar,
@@ -51,7 +51,9 @@ from jsr.pipeline.objects import (
     grow_region,
     inlier_mask,
     merge_object_maps,
+    register_maps,
     segment_vlads,
+    segments_inside_extent,
     unsupported_segments,
 )
 from jsr.pipeline.registration import RegistrationResult, register
@@ -62,6 +64,27 @@ logger = logging.getLogger(__name__)
 STATIC_MAP = "static"
 FREE_SPACE_STRIDE = 4  # free-space tests sample every 4th pixel of every 4th row
 FREE_SPACE_VIEWS = 2  # ... against the latest static keyframes
+UNSUPPORTED_STATIC_SHARE = 0.2  # a segment with more of its features static inliers is supported by the static map
+OWNERSHIP_FILL_RADIUS = 3  # px at 640 wide: pixels in no segment (no depth) take the owner of most labelled neighbours
+
+
+def fill_unlabelled(ownership: np.ndarray, unlabelled: np.ndarray, radius: int) -> np.ndarray:
+    """``ownership`` ``(H, W)`` uint8 with every ``unlabelled`` pixel (no segment: no depth,
+    mostly) given to the object owning more than half of the labelled pixels within ``radius``
+    (0 otherwise): depth dropouts inside an object's faces belong to it."""
+    import cv2
+
+    if not unlabelled.any() or not ownership.any():
+        return ownership
+    size = (2 * radius + 1, 2 * radius + 1)
+    labelled = (~unlabelled).astype(np.float32)
+    labelled_count = cv2.boxFilter(labelled, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    filled = ownership.copy()
+    for object_id in np.unique(ownership[~unlabelled & (ownership > 0)]):
+        mine = ((ownership == object_id) & ~unlabelled).astype(np.float32)
+        count = cv2.boxFilter(mine, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+        filled[unlabelled & (count > 0.5 * labelled_count)] = object_id
+    return filled
 
 
 @dataclass
@@ -168,9 +191,11 @@ class Reconstructor:
         # models fuse only the pixels each map received.
         self.keyframe_masks: dict[int, np.ndarray] = {}
         self.merged_into: dict[int, int] = {}  # object id -> the id of the map it was merged into
+        self._next_object_id = 1
         self._adjacency_cache: np.ndarray | None = None
         self._free_space_cache: tuple[np.ndarray, np.ndarray] | None = None
         self._frame_pose: np.ndarray | None = None  # T_w_c of the frame being processed, if tracked
+        self._static_matched: np.ndarray | None = None  # (N,) bool: its points matched to the static map
         # Subsampled depth of the latest static keyframes, for free-space tests (detection).
         self.depth_views: list[tuple[int, DepthView]] = []
 
@@ -230,6 +255,9 @@ class Reconstructor:
         self._adjacency_cache = None
         self._free_space_cache = None
         self._frame_pose = report.T_w_c if static is not None else None
+        self._static_matched = np.zeros(len(measurements.points), dtype=bool)
+        if static is not None and not static.bridged:
+            self._static_matched[static.matched.point_measurements] = True
         assignment = self._classify(frame, measurements, static, tracked_objects)
         if objects_on and static is not None:
             tic = time.perf_counter()
@@ -242,7 +270,8 @@ class Reconstructor:
             if objects_on:
                 self._retire_vacated_landmarks(frame, report.T_w_c)
         for outcome in tracked_objects:
-            self._update_object(frame, measurements, report, outcome, assignment)
+            if self._update_object(frame, measurements, report, outcome, assignment):
+                self._merge_registered_maps(outcome.object_map, frame.index, assignment, report)
         timings["map_update"] = (time.perf_counter() - tic) * 1000.0
         return assignment
 
@@ -415,22 +444,68 @@ class Reconstructor:
                 shared = int((inliers[target_id] & inliers[source_id]).sum())
                 if shared < config.merge_min_shared_inliers:
                     continue
-                T_target_source = target.T_o_c @ np.linalg.inv(source.T_o_c)
-                self.bundle.finish(target.object_map)
-                self.bundle.finish(source.object_map)
-                merge_object_maps(target.object_map, source.object_map, T_target_source)
-                self.object_maps.remove(source.object_map)
-                self._reindex_segments(target.object_map)
-                self.segment_index.remove_map(source_id)
+                self._merge_maps(target.object_map, source.object_map, target.T_o_c @ np.linalg.inv(source.T_o_c),
+                                 measurements.frame_index, f"{shared} shared inliers")
                 inliers[target_id] |= inliers[source_id]
                 merged.add(source_id)
-                self.merged_into[source_id] = target_id
-                for earlier, into in self.merged_into.items():
-                    if into == source_id:
-                        self.merged_into[earlier] = target_id
-                logger.info("frame %d: object %d is object %d (%d shared inliers); maps merged",
-                            measurements.frame_index, source_id, target_id, shared)
         return [o for o in outcomes if o.object_map.object_id not in merged]
+
+    def _merge_registered_maps(self, object_map: ObjectMap, frame_index: int, assignment: FrameAssignment,
+                               report: FrameReport) -> None:
+        """Merge ``object_map`` (which just got a keyframe) with every other object map its
+        landmarks register with (:func:`register_maps`, at least ``objects.map_merge_min_inliers``
+        inliers): one object seen as two maps, though never in the same frame. The older map
+        keeps its id; this frame's assignment and report follow the merge."""
+        config = self.config.objects
+        if not config.merge_maps or config.map_merge_min_inliers <= 0:
+            return
+        for other in [m for m in self.object_maps if m is not object_map]:
+            if other not in self.object_maps or object_map not in self.object_maps:
+                continue
+            target, source = (other, object_map) if other.object_id < object_map.object_id else (object_map, other)
+            result = register_maps(target, source, self.config, self.rng)
+            if result is None or not result.success or result.num_inliers < config.map_merge_min_inliers:
+                continue
+            self._merge_maps(target, source, result.transformation, frame_index,
+                             f"{result.num_inliers} of {result.num_matches} landmark matches agree")
+            for owner in (assignment.point_owner, assignment.plane_owner, assignment.segment_owner):
+                owner[owner == source.object_id] = target.object_id
+            for ids in (report.objects_tracked, report.objects_created):
+                if source.object_id in ids:
+                    ids.remove(source.object_id)
+                    if ids is report.objects_tracked and target.object_id not in ids:
+                        ids.append(target.object_id)
+            object_map = target
+
+    def _merge_maps(self, target: ObjectMap, source: ObjectMap, T_target_source: np.ndarray, frame_index: int,
+                    evidence: str) -> None:
+        """Move ``source`` into ``target`` (:func:`merge_object_maps`) and keep every index of
+        the reconstructor consistent: segment VLADs, the merged-id table, the keyframe
+        ownership masks, and the tracking state when only ``source`` was tracked last."""
+        self.bundle.finish(target)
+        self.bundle.finish(source)
+        source_frames = [keyframe.frame_index for keyframe in source.keyframes]
+        source_last = source.trajectory[-1][0] if source.trajectory else -1
+        target_last = target.trajectory[-1][0] if target.trajectory else -1
+        merge_object_maps(target, source, T_target_source)
+        if source_last > target_last and source.last_T_o_c is not None:
+            # the source saw the object last: the merged map continues from there
+            target.last_T_o_c = T_target_source @ source.last_T_o_c
+            target.last_T_w_o = None if source.last_T_w_o is None else source.last_T_w_o @ np.linalg.inv(T_target_source)
+            target.lost = source.lost
+        self.object_maps.remove(source)
+        self._reindex_segments(target)
+        self.segment_index.remove_map(source.object_id)
+        self.merged_into[source.object_id] = target.object_id
+        for earlier, into in self.merged_into.items():
+            if into == source.object_id:
+                self.merged_into[earlier] = target.object_id
+        for index in source_frames:
+            mask = self.keyframe_masks.get(index)
+            if mask is not None:
+                mask[mask == source.object_id] = target.object_id
+        logger.info("frame %d: object %d is object %d (%s); maps merged", frame_index, source.object_id,
+                    target.object_id, evidence)
 
     def _reindex_segments(self, object_map: ObjectMap) -> None:
         """Rebuild the VLADs of an object map's segments (after its keyframes were renumbered)."""
@@ -451,8 +526,6 @@ class Reconstructor:
         matched = np.zeros(num_points, dtype=bool)
         matched[static.matched.point_measurements] = True
         inliers, _ = inlier_mask(static.matched, static.result, num_points, len(measurements.planes))
-        from jsr.pipeline.detection import segment_outlier_stats
-
         stats = segment_outlier_stats(segments, matched, inliers)
         detection = self.config.detection
         return (stats.matched >= detection.min_segment_features) & (
@@ -466,7 +539,7 @@ class Reconstructor:
         return self._adjacency_cache
 
     def _grow(self, frame: Frame, measurements: FrameMeasurements, seeds: list[int], static_inliers: np.ndarray,
-              segment_owner: np.ndarray) -> list[int]:
+              segment_owner: np.ndarray, inside: np.ndarray | None = None) -> list[int]:
         """``seeds`` grown into depth-adjacent segments that nothing shows to be static
         (``objects.grow_segments``): the faces of an object whose features are not matched yet."""
         if not self.config.objects.grow_segments or not seeds:
@@ -476,11 +549,25 @@ class Reconstructor:
         candidates = unsupported_segments(measurements, static_inliers, self.config.detection.min_segment_features)
         candidates &= segment_owner == 0
         # A segment whose surface lies where the static keyframes saw one has not moved, even if
-        # the static map holds few landmarks on it (a table top the object stands on).
+        # the static map holds few landmarks on it (a table top the object stands on) ...
         violations, consistent = self._free_space(frame, measurements)
         sampled = violations + consistent
         min_samples = self._free_space_min_samples()
-        candidates &= (sampled < min_samples) | (consistent < 0.5 * sampled)
+        seen_static = (sampled >= min_samples) & (consistent >= 0.5 * sampled)
+        # ... unless the static landmarks matched in it are (nearly) all outliers: they moved
+        # with it, and the surface the keyframes saw there was the object itself before it moved.
+        min_features = self.config.detection.min_segment_features
+        stats = segment_outlier_stats(measurements.segments, self._static_matched, static_inliers)
+        static_count = stats.matched - stats.outliers
+        moved = (stats.matched >= min_features) & (stats.outlier_ratio >= 1.0 - UNSUPPORTED_STATIC_SHARE) & (
+            static_count < min_features)
+        candidates &= ~seen_static | moved
+        if inside is not None:
+            # Inside the object's extent and not shown static by its features: the object's own
+            # faces, even without reliable 3D features (seen at a grazing angle).
+            features = np.array([len(i) for i in measurements.segments.point_indices])
+            candidates |= inside & (segment_owner == 0) & (static_count < min_features) & (
+                static_count <= UNSUPPORTED_STATIC_SHARE * np.maximum(features, 1))
         return grow_region(seeds, candidates, self._adjacency(frame, measurements))
 
     def _free_space(self, frame: Frame, measurements: FrameMeasurements) -> tuple[np.ndarray, np.ndarray]:
@@ -527,9 +614,15 @@ class Reconstructor:
                 evidence |= (point_owner == r.object_id) & (r.frame_inliers_points | r.segment_inliers_points)
             segment_owner = complete_segments(point_segment, len(segments), point_owner, evidence,
                                               [r.object_id for r in tracked], self.config.detection.min_segment_features)
+            poses = {o.object_map.object_id: (o.object_map, o.T_o_c) for o in outcomes if o.success}
             for r in tracked:
                 own = np.flatnonzero(segment_owner == r.object_id).tolist()
-                grown = self._grow(frame, measurements, own, static_inliers, segment_owner)
+                object_map, T_o_c = poses[r.object_id]
+                inside = None if not self.config.objects.grow_inside_extent else segments_inside_extent(
+                    segments.label_image, frame.depth, self.intrinsics, T_o_c,
+                    object_map.points.positions[object_map.points.active], self.config.noise, len(segments),
+                    self.config.objects.extent_margin, self.config.objects.extent_share)
+                grown = self._grow(frame, measurements, own, static_inliers, segment_owner, inside)
                 segment_owner[[s for s in grown if segment_owner[s] == 0]] = r.object_id
             # Features and planes inside an object's segment go to that object, matched or not:
             # new views of the object grow its map instead of leaking into the static map.
@@ -558,7 +651,7 @@ class Reconstructor:
                                              exclude=assignment.point_owner > 0)
         by_outliers = self._not_in_place(measurements, static, by_outliers, inliers, report.T_w_c, keep_unknown=False)
         violations, consistent = self._free_space(frame, measurements)
-        if self.config.objects.free_space_detection:
+        if self.config.objects.free_space_detection and self.config.detection.free_space_veto:
             # A region whose surface is where the static keyframes saw one has most likely not
             # moved either (on real data, outliers that agree on a motion also come from a
             # camera pose that is off over part of the image).
@@ -723,7 +816,8 @@ class Reconstructor:
                                    & (assignment.plane_owner == 0))
         if len(point_ids) < min(self.config.detection.min_object_points, self.config.ransac.min_matches):
             return None
-        object_id = len(self.object_maps) + 1
+        object_id = self._next_object_id  # ids are never reused, also after merges
+        self._next_object_id += 1
         object_map = ObjectMap(object_id, frame.index)
         keyframe = object_map.add_keyframe(
             frame.index, frame.timestamp, np.eye(4), points, point_ids, np.full(len(point_ids), -1),
@@ -911,12 +1005,15 @@ class Reconstructor:
             logger.debug("static map: %d landmarks retired, their surface is gone", len(retire))
 
     def _update_object(self, frame: Frame, measurements: FrameMeasurements, report: FrameReport,
-                       outcome: ObjectTrackingResult, assignment: FrameAssignment) -> None:
-        """Record the object's pose and add a keyframe when the object-relative view is new."""
+                       outcome: ObjectTrackingResult, assignment: FrameAssignment) -> bool:
+        """Record the object's pose and add a keyframe when the object-relative view is new
+        (then True)."""
         object_map = outcome.object_map
+        if object_map not in self.object_maps:
+            return False  # merged into another map earlier in this frame
         best = outcome.best
         if best is None:
-            return
+            return False
         matched, result = best
         T_o_c = result.transformation
         object_map.lost = False
@@ -928,7 +1025,7 @@ class Reconstructor:
             object_map.last_T_w_o = T_w_o
             object_map.trajectory.append((frame.index, frame.timestamp, T_w_o))
         if not object_map.needs_keyframe(T_o_c, self.config.keyframes):
-            return
+            return False
         points, planes = measurements.points, measurements.planes
         own_points = np.flatnonzero(assignment.point_owner == object_map.object_id)
         own_planes = np.flatnonzero(assignment.plane_owner == object_map.object_id)
@@ -940,6 +1037,7 @@ class Reconstructor:
         own_segments = np.flatnonzero(assignment.segment_owner == object_map.object_id)
         self._index_segments(object_map, keyframe, measurements, own_segments)
         self.bundle.maybe_start(object_map)
+        return True
 
     # ----------------------------------------------------------------------------------
     # Outputs
@@ -952,6 +1050,7 @@ class Reconstructor:
             return image
         owner_of_label = np.append(assignment.segment_owner, 0).astype(np.uint8)  # label -1 -> static
         image = owner_of_label[np.where(labels >= 0, labels, len(assignment.segment_owner))]
+        image = fill_unlabelled(image, labels < 0, max(1, round(OWNERSHIP_FILL_RADIUS * labels.shape[1] / 640)))
         object_points = np.flatnonzero(assignment.point_owner > 0)
         if len(object_points):
             height, width = labels.shape
