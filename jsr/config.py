@@ -80,6 +80,7 @@ class SegmentsConfig:
     discontinuity_sigmas: float = 4.0
     min_discontinuity: float = 0.02
     min_segment_pixels: int = 400
+    concave_angle_degrees: float = 30.0
 
 
 @dataclass
@@ -101,6 +102,7 @@ class RansacConfig:
 
     min_inlier_ratio: float = 0.4
     min_matches: int = 10
+    min_inliers: int = 8
     max_iterations: int = 1000
     confidence: float = 0.999
     plane_inlier_angle_degrees: float = 5.0
@@ -130,7 +132,8 @@ class DetectionConfig:
     min_segment_features: int = 5
     significance: float = 0.01
     require_rigid_motion: bool = True
-    free_space_veto: bool = True
+    free_space_veto: bool = False
+    vacancy_veto: bool = True
     min_motion: float = 0.03
     min_motion_degrees: float = 3.0
     merge_gap_pixels: int = 2
@@ -146,6 +149,7 @@ class ObjectsConfig:
     segment_completion: bool = True
     grow_segments: bool = True
     grow_inside_extent: bool = True
+    split_mixed_segments: bool = True
     extent_margin: float = 0.03
     extent_share: float = 0.5
     retire_object_matches: bool = True
@@ -255,6 +259,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "matching.max_descriptor_distance": (lambda v: 0 < v <= 2, "in (0, 2]"),
     "ransac.min_inlier_ratio": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "ransac.min_matches": (lambda v: v >= 3, "at least 3"),
+    "ransac.min_inliers": (lambda v: v >= 3, "at least 3"),
     "ransac.max_iterations": (lambda v: v >= 1, "at least 1"),
     "ransac.confidence": (lambda v: 0 < v < 1, "in (0, 1)"),
     "ransac.plane_inlier_angle_degrees": (lambda v: 0 < v < 90, "in (0, 90)"),
@@ -278,6 +283,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "objects.retire_after_vacated": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.free_space_margin": (lambda v: v > 0, "positive"),
     "objects.extent_margin": (lambda v: v >= 0, "at least 0"),
+    "segments.concave_angle_degrees": (lambda v: 0 <= v < 180, "in [0, 180) (0: no crease cuts)"),
     "objects.extent_share": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "objects.free_space_sigmas": (lambda v: v > 0, "positive"),
     "objects.merge_min_shared_inliers": (lambda v: v >= 1, "at least 1"),

@@ -31,15 +31,8 @@ def jump_sequence(tmp_path_factory):
     return root
 
 
-def true_object_poses(root, min_jump=0.0):
-    """``(F, 4, 4)`` true T_w_o of object 1 per frame, and the first frame it moved in by more
-    than ``min_jump`` metres.
-
-    Known limit: a move that leaves the object largely inside its old volume (this sequence's
-    first one, 9 cm) is not detected, unless its landmarks were matched: the free-space test
-    sees no surface in front of the old one, and the turned box shows texture the static map
-    never had. Detection tests therefore count from the first clear jump (``min_jump``).
-    """
+def true_object_poses(root):
+    """``(F, 4, 4)`` true T_w_o of object 1 per frame, and the first frame it moved in."""
     rows = np.loadtxt(root / "objects" / "object_1.txt")
     from scipy.spatial.transform import Rotation
 
@@ -47,11 +40,7 @@ def true_object_poses(root, min_jump=0.0):
     poses[:, :3, :3] = Rotation.from_quat(rows[:, 4:8]).as_matrix()
     poses[:, :3, 3] = rows[:, 1:4]
     moved = np.flatnonzero(np.linalg.norm(np.diff(rows[:, 1:8], axis=0), axis=1) > 1e-6) + 1
-    jumped = [i for i in moved if np.linalg.norm(rows[i, 1:4] - rows[i - 1, 1:4]) > min_jump]
-    return poses, int(jumped[0])
-
-
-CLEAR_JUMP = 0.15  # metres: a jump that takes the box out of most of its old volume
+    return poses, int(moved[0])
 
 
 def labels_of(root, frame):
@@ -73,12 +62,12 @@ def jump_run(jump_sequence):
 
 
 def test_moving_object_is_detected_within_three_frames(jump_sequence, jump_run):
-    _, first_motion = true_object_poses(jump_sequence, CLEAR_JUMP)
+    _, first_motion = true_object_poses(jump_sequence)
     created = [r.frame_index for r in jump_run.reports if r.objects_created]
     assert created, "no object map was created"
-    _, very_first = true_object_poses(jump_sequence)
-    assert very_first <= created[0] <= first_motion + 3
-    assert not any(r.objects_created for r in jump_run.reports[:very_first])  # nothing before it moved
+    # the first move (9 cm, 43 degrees) keeps the box largely within its old volume
+    assert first_motion <= created[0] <= first_motion + 3
+    assert not any(r.objects_created for r in jump_run.reports[:first_motion])  # nothing before it moved
     assert all(r.tracked for r in jump_run.reports)  # the camera is not dragged off by the object
 
 
@@ -113,7 +102,7 @@ def test_masks_agree_with_labels(jump_sequence, jump_run):
         actual += int(labels.sum())
     assert predicted > 0
     assert true_positive / predicted > 0.85
-    assert true_positive / actual > 0.4  # one or two faces of the box carry features at 320x240
+    assert true_positive / actual > 0.6  # every face the box turns towards the camera, at 320x240
 
 
 def first_observation_labels(reconstructor, map_, sequence, root):
@@ -156,7 +145,7 @@ def test_object_out_of_view_is_relocalised(jump_sequence, tmp_path):
     root = tmp_path / "hidden"
     shutil.copytree(jump_sequence, root)
     sequence = open_sequence(root)
-    _, first_motion = true_object_poses(root, CLEAR_JUMP)
+    _, first_motion = true_object_poses(root)
     hidden = range(first_motion + 3, first_motion + 6)
     for index in hidden:
         entry = sequence.entries[index]

@@ -224,3 +224,28 @@ def test_kitchen_box_segments(shared_data):
             assert coverage.get(1, 0.0) >= 0.9, f"frame {index}: box covered {coverage}"
             on_box = [s for s in purities if np.bincount(truth[segments.label_image == s]).argmax() == 1]
             assert all(purities[s] >= 0.95 for s in on_box), f"frame {index}: {[purities[s] for s in on_box]}"
+
+
+def _fold(slope: float) -> np.ndarray:
+    """Depth of two planes meeting at the middle column: ``slope < 0`` folds away from the
+    camera there (concave, a room corner), ``slope > 0`` towards it (convex, a box edge)."""
+    u = np.arange(160, dtype=np.float64)
+    x = (u - INTRINSICS.cx) / INTRINSICS.fx  # ray slope; the surface z = 2 + slope |X| along it
+    z = 2.0 / (1.0 - slope * np.abs(x))
+    return np.tile(z, (120, 1))
+
+
+def test_concave_creases_cut_folds_away_from_the_camera_only():
+    from jsr.pipeline.segments import concave_creases
+
+    concave = concave_creases(_fold(-0.6).astype(np.float32), INTRINSICS, 30.0)
+    columns = np.flatnonzero(concave.any(axis=0))
+    assert len(columns) and np.all(np.abs(columns - INTRINSICS.cx) <= 4)  # a band 8 px wide at the fold
+    assert concave[:, int(INTRINSICS.cx)].mean() > 0.9  # all the way down
+    assert not concave_creases(_fold(0.6).astype(np.float32), INTRINSICS, 30.0).any()
+    assert not concave_creases(_fold(-0.1).astype(np.float32), INTRINSICS, 30.0).any()  # an 11 degree fold
+    # two faces of a room corner are two segments, two faces of a box edge one; every pixel is kept
+    corner = _segments_of(_fold(-0.6))
+    assert len(corner) == 2 and np.all(corner.label_image >= 0)
+    assert corner.label_image[60, 20] != corner.label_image[60, 140]
+    assert len(_segments_of(_fold(0.6))) == 1

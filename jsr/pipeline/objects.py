@@ -333,31 +333,48 @@ def segments_inside_extent(label_image: np.ndarray, depth: np.ndarray, intrinsic
     lies on the hull of the landmarks of the faces next to it; the table the box stands on
     reaches far outside it.
     """
-    from scipy.spatial import ConvexHull, QhullError
-
     result = np.zeros(num_segments, dtype=bool)
-    landmarks = np.asarray(landmarks, dtype=float).reshape(-1, 3)
-    if len(landmarks) < 8 or num_segments == 0:
-        return result
-    try:
-        hull = ConvexHull(landmarks)
-    except (QhullError, ValueError):  # flat or degenerate: no volume to be inside of
+    hull = extent_hull(landmarks)
+    if hull is None or num_segments == 0:
         return result
     labels = np.asarray(label_image)[::stride, ::stride]
     z = np.asarray(depth, dtype=np.float64)[::stride, ::stride]
     rows, cols = np.nonzero((labels >= 0) & (z > 0))
     if not len(rows):
         return result
-    zs = z[rows, cols]
-    u, v = cols * stride, rows * stride
-    camera = np.column_stack([(u - intrinsics.cx) / intrinsics.fx * zs, (v - intrinsics.cy) / intrinsics.fy * zs, zs])
-    in_object = camera @ T_o_c[:3, :3].T + T_o_c[:3, 3]
-    outside = np.max(in_object @ hull.equations[:, :3].T + hull.equations[:, 3], axis=1)  # > 0: outside
-    margin = np.maximum(margin, noise.inlier_sigmas * noise.sigma_z_coefficient * zs**2)
+    inside_pixel = pixels_inside_hull(rows * stride, cols * stride, z[rows, cols], intrinsics, T_o_c, hull, noise,
+                                      margin)
     segment = labels[rows, cols]
     samples = np.bincount(segment, minlength=num_segments)
-    inside = np.bincount(segment, weights=(outside <= margin).astype(float), minlength=num_segments)
+    inside = np.bincount(segment, weights=inside_pixel.astype(float), minlength=num_segments)
     return (samples >= min_samples) & (inside >= min_share * np.maximum(samples, 1))
+
+
+def extent_hull(landmarks: np.ndarray):
+    """The convex hull (scipy ``ConvexHull``) of ``(L, 3)`` object landmarks, or None when
+    there are fewer than 8 of them or they span no volume."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    landmarks = np.asarray(landmarks, dtype=float).reshape(-1, 3)
+    if len(landmarks) < 8:
+        return None
+    try:
+        return ConvexHull(landmarks)
+    except (QhullError, ValueError):  # flat or degenerate: no volume to be inside of
+        return None
+
+
+def pixels_inside_hull(rows: np.ndarray, cols: np.ndarray, depths: np.ndarray, intrinsics, T_o_c: np.ndarray,
+                       hull, noise, margin: float) -> np.ndarray:
+    """``(M,)`` bool: pixels ``(rows, cols)`` with depth ``depths`` (metres) whose 3D point,
+    moved into the object frame with ``T_o_c``, lies inside ``hull`` widened by
+    ``max(margin, inlier_sigmas sigma_Z)``."""
+    zs = np.asarray(depths, dtype=np.float64)
+    camera = np.column_stack([(cols - intrinsics.cx) / intrinsics.fx * zs, (rows - intrinsics.cy) / intrinsics.fy * zs,
+                              zs])
+    in_object = camera @ T_o_c[:3, :3].T + T_o_c[:3, 3]
+    outside = np.max(in_object @ hull.equations[:, :3].T + hull.equations[:, 3], axis=1)  # > 0: outside
+    return outside <= np.maximum(margin, noise.inlier_sigmas * noise.sigma_z_coefficient * zs**2)
 
 
 def unsupported_segments(measurements: FrameMeasurements, static_inliers: np.ndarray, min_points: int,

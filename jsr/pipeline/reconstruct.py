@@ -54,6 +54,8 @@ from jsr.pipeline.objects import (
     register_maps,
     segment_vlads,
     segments_inside_extent,
+    extent_hull,
+    pixels_inside_hull,
     unsupported_segments,
 )
 from jsr.pipeline.registration import RegistrationResult, register
@@ -147,6 +149,7 @@ class FrameAssignment:
     point_owner: np.ndarray
     plane_owner: np.ndarray
     segment_owner: np.ndarray
+    not_object_pixels: np.ndarray | None = None  # (H, W) bool: pixels of object segments left out (mixed segments)
 
 
 class Reconstructor:
@@ -633,7 +636,51 @@ class Reconstructor:
         for r in tracked:  # the seed segments of segment-based registration belong to their object
             for segment in r.matching_segments if r.segment_success else []:
                 segment_owner[segment] = r.object_id
-        return FrameAssignment(point_owner.astype(np.int64), plane_owner.astype(np.int64), segment_owner)
+        assignment = FrameAssignment(point_owner.astype(np.int64), plane_owner.astype(np.int64), segment_owner)
+        if tracked and self.config.objects.split_mixed_segments:
+            object_inliers = np.zeros(num_points, dtype=bool)
+            for r in tracked:
+                object_inliers |= r.frame_inliers_points | r.segment_inliers_points
+            self._split_mixed_segments(frame, measurements, assignment, static_inliers & ~object_inliers,
+                                       {o.object_map.object_id: o for o in outcomes if o.success})
+        return assignment
+
+    def _split_mixed_segments(self, frame: Frame, measurements: FrameMeasurements, assignment: FrameAssignment,
+                              static_evidence: np.ndarray, outcomes: dict[int, ObjectTrackingResult]) -> None:
+        """Beyond the paper, which takes segments to be parts of one surface: a segment given
+        to an object that also holds ``detection.min_segment_features`` static-registration
+        inliers (``static_evidence`` ``(N,)``: not inliers of any object) spans the object and
+        the static scene (a box standing on a table, in one depth segment). Its static inliers
+        stay static, and only its pixels inside the object's extent (:func:`pixels_inside_hull`)
+        go into the object's mask (``objects.split_mixed_segments``)."""
+        segments = measurements.segments
+        point_segment = segments.segment_of_points(len(measurements.points))
+        owner_of_point = np.where(point_segment >= 0, assignment.segment_owner[np.maximum(point_segment, 0)], 0)
+        evidence = static_evidence & (owner_of_point > 0)
+        counts = np.bincount(point_segment[evidence], minlength=len(segments)) if evidence.any() else \
+            np.zeros(len(segments), dtype=np.int64)
+        mixed = np.flatnonzero((counts >= self.config.detection.min_segment_features) & (assignment.segment_owner > 0))
+        if not len(mixed):
+            return
+        in_mixed = np.isin(point_segment, mixed)
+        assignment.point_owner[evidence & in_mixed] = 0
+        labels = segments.label_image
+        not_object = np.zeros(labels.shape, dtype=bool)
+        for segment in mixed:
+            object_id = int(assignment.segment_owner[segment])
+            outcome = outcomes.get(object_id)
+            hull = None if outcome is None else extent_hull(
+                outcome.object_map.points.positions[outcome.object_map.points.active])
+            rows, cols = np.nonzero(labels == segment)
+            depth = frame.depth[rows, cols]
+            if hull is None:
+                continue
+            inside = (depth > 0) & pixels_inside_hull(rows, cols, depth, self.intrinsics, outcome.T_o_c, hull,
+                                                      self.config.noise, self.config.objects.extent_margin)
+            not_object[rows[~inside], cols[~inside]] = True
+            logger.debug("frame %d: segment %d is mixed (%d static inliers); %d of %d pixels are object %d",
+                         measurements.frame_index, segment, counts[segment], int(inside.sum()), len(rows), object_id)
+        assignment.not_object_pixels = not_object
 
     def _detect(self, frame: Frame, measurements: FrameMeasurements, report: FrameReport,
                 static: StaticRegistration, outcomes: list[ObjectTrackingResult], assignment: FrameAssignment) -> None:
@@ -658,7 +705,7 @@ class Reconstructor:
             sampled = violations + consistent
             min_samples = self._free_space_min_samples()
             by_outliers = [s for s in by_outliers if sampled[s] < min_samples or consistent[s] < 0.5 * sampled[s]]
-        by_outliers = self._rigidly_moved(measurements, static, by_outliers, inliers)
+        by_outliers = self._rigidly_moved(frame, measurements, static, by_outliers, inliers)
         by_free_space = self._free_space_segments(measurements, violations, consistent, inliers)
         by_free_space = self._not_in_place(measurements, static, by_free_space, inliers, report.T_w_c,
                                            keep_unknown=True)
@@ -720,8 +767,8 @@ class Reconstructor:
             kept.append(segment)
         return kept
 
-    def _rigidly_moved(self, measurements: FrameMeasurements, static: StaticRegistration, candidates: list[int],
-                       static_inliers: np.ndarray) -> list[int]:
+    def _rigidly_moved(self, frame: Frame, measurements: FrameMeasurements, static: StaticRegistration,
+                       candidates: list[int], static_inliers: np.ndarray) -> list[int]:
         """The candidate segments whose static-map outliers agree on one rigid motion
         (``detection.require_rigid_motion``), grouped as touching regions.
 
@@ -745,7 +792,7 @@ class Reconstructor:
             subset = matched.correspondences.subset(point3d=rows, point2d=np.zeros(0, dtype=np.int64),
                                                     plane=np.zeros(0, dtype=np.int64))
             ransac = dataclasses.replace(self.config.ransac, min_matches=self.config.detection.min_segment_features,
-                                         min_inlier_ratio=0.5)
+                                         min_inliers=self.config.detection.min_segment_features, min_inlier_ratio=0.5)
             motion = register(subset, ransac, self.config.noise, self.rng)
             if not motion.success:
                 continue
@@ -757,9 +804,59 @@ class Reconstructor:
             logger.debug("frame %d: segments %s moved %.3f m, %.1f deg (%d of %d outliers agree)",
                          measurements.frame_index, group, moved, turned, motion.num_inliers, len(rows))
             detection = self.config.detection
-            if moved >= detection.min_motion or turned >= detection.min_motion_degrees:
-                confirmed.extend(group)
+            if not (moved >= detection.min_motion or turned >= detection.min_motion_degrees):
+                continue
+            if detection.vacancy_veto and self._old_place_still_there(frame.depth, segments, group,
+                                                                      static.result.transformation,
+                                                                      motion.transformation):
+                logger.debug("frame %d: segments %s: where they came from is not vacated", measurements.frame_index,
+                             group)
+                continue
+            confirmed.extend(group)
         return sorted(confirmed)
+
+    def _old_place_still_there(self, depth: np.ndarray, segments, group: list[int], T_w_c: np.ndarray,
+                               T_w_old: np.ndarray) -> bool:
+        """Whether the surface a region would have come from is still where it was.
+
+        ``T_w_old`` maps the region's camera-frame points to where the static map had them
+        (its outliers' rigid motion), ``T_w_c`` is the camera pose. A region that moved has
+        left its old place: seen from this camera, the depth there is now *behind* the old
+        surface (vacated). A false motion (repeated texture: the next cabinet door over; a pose
+        error over part of the image) points at a place whose surface is still there. Samples
+        whose old place projects onto the region itself (a move within the object's own
+        extent) or is hidden by something nearer say nothing. Still there: at least half of
+        at least ``objects.free_space_min_pixels`` (scaled) samples.
+        """
+        labels = segments.label_image
+        stride = FREE_SPACE_STRIDE
+        sub_labels = labels[::stride, ::stride]
+        sub_depth = depth[::stride, ::stride].astype(np.float64)
+        rows, cols = np.nonzero(np.isin(sub_labels, group) & (sub_depth > 0))
+        if not len(rows):
+            return False
+        intr = self.intrinsics
+        z = sub_depth[rows, cols]
+        u, v = cols * stride, rows * stride
+        camera = np.column_stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z])
+        old_world = camera @ T_w_old[:3, :3].T + T_w_old[:3, 3]
+        old_camera = (old_world - T_w_c[:3, 3]) @ T_w_c[:3, :3]  # the old place seen from this camera
+        zo = old_camera[:, 2]
+        safe = np.where(zo > 1e-3, zo, 1.0)
+        uo = np.round(intr.fx * old_camera[:, 0] / safe + intr.cx).astype(np.int64)
+        vo = np.round(intr.fy * old_camera[:, 1] / safe + intr.cy).astype(np.int64)
+        height, width = depth.shape
+        inside = (zo > 1e-3) & (uo >= 0) & (uo < width) & (vo >= 0) & (vo < height)
+        inside[inside] &= ~np.isin(labels[vo[inside], uo[inside]], group)
+        seen = np.zeros(len(zo))
+        seen[inside] = depth[vo[inside], uo[inside]]
+        known = inside & (seen > 0)
+        noise = self.config.noise
+        margin = np.maximum(noise.min_inlier_threshold, noise.inlier_sigmas * noise.sigma_z_coefficient * zo**2)
+        there = known & (np.abs(seen - zo) <= margin)
+        vacated = known & (seen > zo + margin)
+        evidence = int(there.sum() + vacated.sum())
+        return evidence >= self._free_space_min_samples() and there.sum() >= 0.5 * evidence
 
     def _reidentify(self, measurements: FrameMeasurements, group: list[int], group_points: np.ndarray,
                     outcomes: dict[int, ObjectTrackingResult], assignment: FrameAssignment) -> bool:
@@ -1050,6 +1147,8 @@ class Reconstructor:
             return image
         owner_of_label = np.append(assignment.segment_owner, 0).astype(np.uint8)  # label -1 -> static
         image = owner_of_label[np.where(labels >= 0, labels, len(assignment.segment_owner))]
+        if assignment.not_object_pixels is not None:
+            image[assignment.not_object_pixels] = 0
         image = fill_unlabelled(image, labels < 0, max(1, round(OWNERSHIP_FILL_RADIUS * labels.shape[1] / 640)))
         object_points = np.flatnonzero(assignment.point_owner > 0)
         if len(object_points):

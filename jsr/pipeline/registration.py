@@ -28,8 +28,10 @@ Counting rule. Every correspondence counts as one match, a plane pair included (
 one measurement of the frame even though it summarises many pixels), so
 ``num_matches = A + B + C``. RANSAC is not run when ``num_matches < ransac.min_matches``.
 The registration succeeds when ``num_inliers / num_matches >= ransac.min_inlier_ratio`` and
-``num_inliers >= max(3, ceil(ransac.min_matches * ransac.min_inlier_ratio))`` (4 with the
-paper's 10 matches and 0.4).
+``num_inliers >= max(3, ransac.min_inliers, ceil(ransac.min_matches * ransac.min_inlier_ratio))``.
+The paper's 10 matches at 0.4 alone would accept 4 inliers, one more than a minimal sample:
+on real data that happens by chance (a lost object map "found" on four 2D points of the
+kitchen, 1.2 m off, in kitchen_box120), hence ``ransac.min_inliers`` (8).
 
 RANSAC draws minimal samples of three correspondences from a pool: the 3D points and planes
 when at least ``ransac.sample_2d_below`` of them exist, otherwise all correspondences. The
@@ -282,7 +284,7 @@ def _unit_rows(vectors: np.ndarray) -> np.ndarray:
 
 def min_inliers(ransac_cfg: RansacConfig) -> int:
     """Fewest inliers a successful registration needs (see the module docstring)."""
-    return max(3, math.ceil(ransac_cfg.min_matches * ransac_cfg.min_inlier_ratio - 1e-9))
+    return max(3, ransac_cfg.min_inliers, math.ceil(ransac_cfg.min_matches * ransac_cfg.min_inlier_ratio - 1e-9))
 
 
 # --------------------------------------------------------------------------------------

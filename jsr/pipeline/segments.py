@@ -10,6 +10,16 @@ the neighbouring segment they are continuous with. Regions smaller than
 ``min_segment_pixels`` join the adjacent segment they share the longest depth-continuous
 border with, or are dropped if they have none.
 
+Concave creases (``segments.concave_angle_degrees``, beyond the paper) cut too: where the
+surface folds *away* from the camera's side by more than that angle (a box standing on a
+table, a mug on a desk), the two sides are not one surface even though their depth is
+continuous. Convex folds (the edges of a box) keep an object together. The test compares
+normals ``CREASE_BASELINE`` pixels apart, on every ``CREASE_STEP``-th pixel (normals from
+``CREASE_WINDOW`` x ``CREASE_WINDOW`` summed cross products of the back-projected depth): the pair is concave when
+``(n_p - n_q) . (X_p - X_q) < 0`` (normals towards the camera) and the normals differ by
+more than the angle; a band of pixels at the middle of such pairs is cut like the far side
+of a discontinuity (its pixels then join the region on either side they are continuous with).
+
 Segment ``i < P`` is plane ``i``; depth segments follow, largest first.
 """
 
@@ -63,16 +73,21 @@ def build_segments(
     down_farther = depth[1:, :] > depth[:-1, :]
     cut[1:, :] |= jump_v & down_farther
     cut[:-1, :] |= jump_v & ~down_farther
+    if segments_cfg.concave_angle_degrees > 0:
+        cut |= concave_creases(depth, intrinsics, segments_cfg.concave_angle_degrees, segments_cfg.min_discontinuity,
+                               segments_cfg.discontinuity_sigmas, coefficient)
     valid = depth > 0
     free = valid & (plane_labels < 0) & ~cut
     count, components = cv2.connectedComponents(free.view(np.uint8), connectivity=4, ltype=cv2.CV_32S)
     labels = np.where(components > 0, components + np.int32(plane_count - 1), plane_labels)
     total = plane_count + count - 1
 
-    # Cut pixels join the neighbour they are continuous with (two passes: cuts are 1-2 px wide).
+    # Cut pixels join the neighbour they are continuous with (one pass per pixel of width:
+    # discontinuity cuts are 1-2 px wide, crease bands about (CREASE_BAND + 2) * CREASE_STEP).
     pending = np.flatnonzero(valid & (labels < 0) & cut)
     flat_labels = labels.ravel()
-    for _ in range(2):
+    passes = max(2, (CREASE_BAND + 2) * CREASE_STEP) if segments_cfg.concave_angle_degrees > 0 else 2
+    for _ in range(passes):
         if len(pending) == 0:
             break
         joined = _absorb_from_neighbours(flat_labels, depth.ravel(), pending, jump_h, jump_v, width)
@@ -88,6 +103,70 @@ def build_segments(
     point_indices = _points_per_segment(labels, points, keypoint_pixels, segment_count)
     logger.debug("%d segments (%d planes), %d pixels unsegmented", segment_count, plane_count, int((labels < 0).sum()))
     return Segments(label_image=labels, plane_index=plane_index, point_indices=point_indices, pixel_counts=pixel_counts)
+
+
+CREASE_STEP = 2  # creases are looked for on every 2nd pixel of every 2nd row (4x less work)
+CREASE_BASELINE = 8  # full-resolution px between the two normals compared at a crease (their windows do not overlap)
+CREASE_WINDOW = 3  # subsampled px: side of the window the normals are summed over
+CREASE_BAND = 1  # subsampled px: dilation of the cut along a crease (1: none; the straddling pairs make it 3 wide)
+
+
+def concave_creases(depth: np.ndarray, intrinsics: CameraIntrinsics, angle_degrees: float,
+                    max_step: float = 0.02, step_sigmas: float = 4.0, sigma_coefficient: float = 1.425e-3,
+                    ) -> np.ndarray:
+    """``(H, W)`` bool: the pixels of concave creases (see the module docstring), a band
+    ``CREASE_BAND`` pixels wide so that the cut has no gaps for a region to leak through.
+
+    ``depth`` ``(H, W)`` float32 metres, 0 invalid; pinhole back-projection with
+    ``intrinsics``. Tangents across a depth discontinuity (a depth change of more than
+    ``max(max_step, step_sigmas sigma_Z)`` per full-resolution pixel) give no normal.
+    """
+    full = np.asarray(depth, dtype=np.float32)
+    full_height, full_width = full.shape
+    step = CREASE_STEP
+    depth = full[::step, ::step]  # creases are found on every step-th pixel, then mapped back
+    height, width = depth.shape
+    u = (np.arange(width, dtype=np.float32) * step - np.float32(intrinsics.cx)) / np.float32(intrinsics.fx)
+    v = (np.arange(height, dtype=np.float32) * step - np.float32(intrinsics.cy)) / np.float32(intrinsics.fy)
+    points = np.stack([depth * u[None, :], depth * v[:, None], depth], axis=2)  # (h, w, 3)
+    valid = depth > 0
+    # Tangents by central differences, where both ends have depth; their cross product is a
+    # normal weighted by the patch area, summed over a window (one box filter per component).
+    d_u = np.zeros_like(points)
+    d_v = np.zeros_like(points)
+    d_u[:, 1:-1] = points[:, 2:] - points[:, :-2]
+    d_v[1:-1, :] = points[2:, :] - points[:-2, :]
+    ok_u = np.zeros_like(valid)
+    ok_v = np.zeros_like(valid)
+    limit = 2 * step * np.maximum(np.float32(max_step), np.float32(step_sigmas * sigma_coefficient) * depth * depth)
+    ok_u[:, 1:-1] = valid[:, 2:] & valid[:, :-2] & (np.abs(d_u[:, 1:-1, 2]) < limit[:, 1:-1])
+    ok_v[1:-1, :] = valid[2:, :] & valid[:-2, :] & (np.abs(d_v[1:-1, :, 2]) < limit[1:-1, :])
+    normals = np.cross(d_v, d_u) * (ok_u & ok_v)[:, :, None]  # towards the camera (x right, y down, z ahead)
+    normals = cv2.boxFilter(normals, -1, (CREASE_WINDOW, CREASE_WINDOW), normalize=False)
+    length = np.linalg.norm(normals, axis=2, keepdims=True)
+    normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
+    has_normal = (length[:, :, 0] > 0) & valid
+    cos_limit = np.float32(np.cos(np.deg2rad(angle_degrees)))
+    k = max(1, CREASE_BASELINE // step)
+    band = np.zeros((height, width), dtype=np.uint8)
+    for axis, size in ((1, width), (0, height)):
+        if size <= k:
+            continue
+        first = [slice(None), slice(None)]
+        second = [slice(None), slice(None)]
+        first[axis], second[axis] = slice(0, size - k), slice(k, size)
+        first, second = tuple(first), tuple(second)
+        n_p, n_q = normals[first], normals[second]
+        both = has_normal[first] & has_normal[second]
+        bent = np.einsum("...i,...i->...", n_p, n_q) < cos_limit
+        concave = np.einsum("...i,...i->...", n_p - n_q, points[first] - points[second]) < 0
+        crease = both & bent & concave  # the pair (i, i + k) straddles a crease: mark its middle
+        middle = [slice(None), slice(None)]
+        middle[axis] = slice(k // 2, k // 2 + size - k)
+        band[tuple(middle)] |= crease.astype(np.uint8)
+    band = cv2.dilate(band, np.ones((CREASE_BAND, CREASE_BAND), np.uint8))
+    full_band = cv2.resize(band, (full_width, full_height), interpolation=cv2.INTER_NEAREST)
+    return full_band.astype(bool)
 
 
 def _absorb_from_neighbours(
