@@ -247,7 +247,7 @@ def run_pipeline(sequence, config, labels_dir: Path | None) -> RunRecord:
 
 def resolve_merged_ids(record: RunRecord) -> None:
     """Score what the run ended with: an object map merged into another one later counts as that
-    map in every frame (mask pixels, tracked objects, creations), as the summary's
+    map in every frame (mask pixels, tracked objects; creations keep their own id), as the summary's
     ``objects_merged`` table says."""
     if not record.merged_into:
         return

@@ -337,7 +337,7 @@ def test_two_maps_of_one_object_register_and_merge():
 
 
 def test_segments_inside_extent_take_faces_not_the_table():
-    from jsr.pipeline.objects import segments_inside_extent
+    from jsr.pipeline.objects import extent_hull, segments_inside_extent
 
     rng = np.random.default_rng(4)
     intrinsics = SimpleNamespace(fx=300.0, fy=300.0, cx=80.0, cy=60.0)
@@ -348,13 +348,15 @@ def test_segments_inside_extent_take_faces_not_the_table():
     u, v = np.meshgrid(np.arange(160), np.arange(120))
     face = (np.abs(u - 80) < 28) & (np.abs(v - 60) < 28)  # |x|, |y| < 9.3 cm at 1 m
     labels[face] = 0
-    inside = segments_inside_extent(labels, depth, intrinsics, np.eye(4), landmarks, _Noise(), 2,
+    hull = extent_hull(np.concatenate([landmarks, [[3.0, 3.0, 3.0]]]))  # a stray landmark far away is left out
+    inside = segments_inside_extent(labels, depth, intrinsics, np.eye(4), hull, _Noise(), 2,
                                     margin=0.03, min_share=0.5)
     assert inside.tolist() == [True, False]
     # seen from an object frame in which the box is elsewhere, nothing is inside
     moved = np.eye(4)
     moved[:3, 3] = [0.5, 0.0, 0.0]
-    assert not segments_inside_extent(labels, depth, intrinsics, moved, landmarks, _Noise(), 2, 0.03, 0.5).any()
+    assert not segments_inside_extent(labels, depth, intrinsics, moved, hull, _Noise(), 2, 0.03, 0.5).any()
+    assert extent_hull(landmarks[:5]) is None  # too few landmarks: no extent
 
 
 def test_unlabelled_pixels_take_the_owner_of_most_neighbours():

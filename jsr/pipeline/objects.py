@@ -56,6 +56,7 @@ class ObjectMap(Map):
         self.last_T_o_c: np.ndarray | None = None  # camera in the object frame, last tracked frame
         self.last_T_w_o: np.ndarray | None = None  # object in the world, last frame tracked with the camera
         self.lost = False  # not tracked in the previous frame: relocalise against the whole map
+        self.last_tracked_frame = created_at_frame  # the latest frame it was tracked in (camera tracked or not)
         self.trajectory: list[tuple[int, float, np.ndarray]] = []
         self.frames_tracked = 0
 
@@ -323,18 +324,18 @@ def grow_region(seeds: list[int], candidates: np.ndarray, adjacency: np.ndarray)
 
 
 def segments_inside_extent(label_image: np.ndarray, depth: np.ndarray, intrinsics, T_o_c: np.ndarray,
-                           landmarks: np.ndarray, noise, num_segments: int, margin: float, min_share: float,
+                           hull, noise, num_segments: int, margin: float, min_share: float,
                            stride: int = 4, min_samples: int = 10) -> np.ndarray:
-    """``(S,)`` bool: segments whose surface lies inside the object's extent, the convex hull of
-    its ``(L, 3)`` landmarks (object frame), widened by the inlier threshold ``max(1 cm,
-    3 sigma_Z)``: at least ``min_share`` of their sampled pixels (every ``stride``-th, with
+    """``(S,)`` bool: segments whose surface lies inside the object's extent, ``hull``
+    (:func:`extent_hull` of its landmarks, object frame; None: nothing is inside), widened by
+    ``max(margin, inlier_sigmas sigma_Z)`` (the outermost keypoints of a face lie a few
+    centimetres inside its edges): at least ``min_share`` of their sampled pixels (every ``stride``-th, with
     depth; at least ``min_samples`` of them) moved into the object frame with ``T_o_c`` fall
     inside. A face of a box seen at a grazing angle, whose keypoints have no reliable depth,
     lies on the hull of the landmarks of the faces next to it; the table the box stands on
     reaches far outside it.
     """
     result = np.zeros(num_segments, dtype=bool)
-    hull = extent_hull(landmarks)
     if hull is None or num_segments == 0:
         return result
     labels = np.asarray(label_image)[::stride, ::stride]
@@ -350,12 +351,20 @@ def segments_inside_extent(label_image: np.ndarray, depth: np.ndarray, intrinsic
     return (samples >= min_samples) & (inside >= min_share * np.maximum(samples, 1))
 
 
+EXTENT_OUTLIER_FACTOR = 3.0  # landmarks farther from the median than this many median distances are left out
+
+
 def extent_hull(landmarks: np.ndarray):
     """The convex hull (scipy ``ConvexHull``) of ``(L, 3)`` object landmarks, or None when
-    there are fewer than 8 of them or they span no volume."""
+    there are fewer than 8 of them or they span no volume. Landmarks farther from their median
+    than ``EXTENT_OUTLIER_FACTOR`` times the median distance are left out: one stray landmark
+    (a scene feature the object map took) must not stretch the extent over the scene."""
     from scipy.spatial import ConvexHull, QhullError
 
     landmarks = np.asarray(landmarks, dtype=float).reshape(-1, 3)
+    if len(landmarks):
+        distance = np.linalg.norm(landmarks - np.median(landmarks, axis=0), axis=1)
+        landmarks = landmarks[distance <= EXTENT_OUTLIER_FACTOR * max(float(np.median(distance)), 1e-6)]
     if len(landmarks) < 8:
         return None
     try:
@@ -377,8 +386,11 @@ def pixels_inside_hull(rows: np.ndarray, cols: np.ndarray, depths: np.ndarray, i
     return outside <= np.maximum(margin, noise.inlier_sigmas * noise.sigma_z_coefficient * zs**2)
 
 
+UNSUPPORTED_STATIC_SHARE = 0.2  # a segment with a larger share of static-inlier features is supported by the static map
+
+
 def unsupported_segments(measurements: FrameMeasurements, static_inliers: np.ndarray, min_points: int,
-                         max_static_share: float = 0.2) -> np.ndarray:
+                         max_static_share: float = UNSUPPORTED_STATIC_SHARE) -> np.ndarray:
     """``(S,)`` bool: segments with at least ``min_points`` 3D point features of which at most
     ``max_static_share``, and fewer than ``min_points``, are inliers of the static registration:
     nothing says they are static. Featureless segments are never unsupported (there is no
@@ -494,7 +506,8 @@ def register_maps(target: ObjectMap, source: ObjectMap, config: Config, rng: np.
     if min(len(source_ids), len(target_ids)) < config.ransac.min_matches:
         return None
     pairs = match_descriptors(source.points.descriptors[source_ids], target.points.descriptors[target_ids],
-                              config.matching.ratio_test, mutual=True)
+                              config.matching.ratio_test, mutual=True,
+                              max_distance=config.matching.max_descriptor_distance)
     if len(pairs) < config.ransac.min_matches:
         return None
     source_points = source.points.positions[source_ids[pairs[:, 0]]]

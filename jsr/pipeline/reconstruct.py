@@ -57,6 +57,7 @@ from jsr.pipeline.objects import (
     extent_hull,
     pixels_inside_hull,
     unsupported_segments,
+    UNSUPPORTED_STATIC_SHARE,
 )
 from jsr.pipeline.registration import RegistrationResult, register
 from jsr.pipeline.vlad import SegmentIndex, VladVocabulary
@@ -66,7 +67,7 @@ logger = logging.getLogger(__name__)
 STATIC_MAP = "static"
 FREE_SPACE_STRIDE = 4  # free-space tests sample every 4th pixel of every 4th row
 FREE_SPACE_VIEWS = 2  # ... against the latest static keyframes
-UNSUPPORTED_STATIC_SHARE = 0.2  # a segment with more of its features static inliers is supported by the static map
+MAX_OBJECT_ID = 255  # ownership masks are uint8 images
 OWNERSHIP_FILL_RADIUS = 3  # px at 640 wide: pixels in no segment (no depth) take the owner of most labelled neighbours
 
 
@@ -170,7 +171,10 @@ class Reconstructor:
     def __init__(self, config: Config, intrinsics: CameraIntrinsics, init_object_mask: np.ndarray | None = None):
         self.config = config
         self.intrinsics = intrinsics
-        self.rng = np.random.default_rng(config.seed)
+        self.rng = np.random.default_rng(config.seed)  # the static map's registrations
+        # Object registration and detection draw from a stream of their own: turning them on
+        # (or an object appearing) does not change the RANSAC samples of camera tracking.
+        self.objects_rng = np.random.default_rng([config.seed, 1])
         self.frontend = FrontEnd(config, intrinsics)
         self.static_map = Map(STATIC_MAP)
         self.object_maps: list[ObjectMap] = []
@@ -187,7 +191,7 @@ class Reconstructor:
             0.5 * (intrinsics.fx + intrinsics.fy) if config.ransac.refinement == "image" else None
         )
         self._init_object_mask = None if init_object_mask is None else np.asarray(init_object_mask, dtype=bool)
-        self.registrar = ObjectRegistrar(config, intrinsics, self.rng, self._focal_length)
+        self.registrar = ObjectRegistrar(config, intrinsics, self.objects_rng, self._focal_length)
         self.vocabulary: VladVocabulary | None = None
         self.segment_index = SegmentIndex()
         # Per-frame ownership images of the frames that gave a keyframe to some map: the dense
@@ -465,8 +469,10 @@ class Reconstructor:
         for other in [m for m in self.object_maps if m is not object_map]:
             if other not in self.object_maps or object_map not in self.object_maps:
                 continue
+            if other.last_tracked_frame == frame_index:
+                continue  # both seen in this frame: _merge_duplicates compared their inliers
             target, source = (other, object_map) if other.object_id < object_map.object_id else (object_map, other)
-            result = register_maps(target, source, self.config, self.rng)
+            result = register_maps(target, source, self.config, self.objects_rng)
             if result is None or not result.success or result.num_inliers < config.map_merge_min_inliers:
                 continue
             self._merge_maps(target, source, result.transformation, frame_index,
@@ -484,13 +490,13 @@ class Reconstructor:
                     evidence: str) -> None:
         """Move ``source`` into ``target`` (:func:`merge_object_maps`) and keep every index of
         the reconstructor consistent: segment VLADs, the merged-id table, the keyframe
-        ownership masks, and the tracking state when only ``source`` was tracked last."""
+        ownership masks, and the tracking state (``source``'s when it was tracked later)."""
         self.bundle.finish(target)
         self.bundle.finish(source)
         source_frames = [keyframe.frame_index for keyframe in source.keyframes]
-        source_last = source.trajectory[-1][0] if source.trajectory else -1
-        target_last = target.trajectory[-1][0] if target.trajectory else -1
+        source_last, target_last = source.last_tracked_frame, target.last_tracked_frame
         merge_object_maps(target, source, T_target_source)
+        target.last_tracked_frame = max(source_last, target_last)
         if source_last > target_last and source.last_T_o_c is not None:
             # the source saw the object last: the merged map continues from there
             target.last_T_o_c = T_target_source @ source.last_T_o_c
@@ -561,7 +567,9 @@ class Reconstructor:
         # with it, and the surface the keyframes saw there was the object itself before it moved.
         min_features = self.config.detection.min_segment_features
         stats = segment_outlier_stats(measurements.segments, self._static_matched, static_inliers)
-        static_count = stats.matched - stats.outliers
+        point_segment = measurements.segments.segment_of_points(len(measurements.points))
+        in_segment = static_inliers & (point_segment >= 0)
+        static_count = np.bincount(point_segment[in_segment], minlength=len(measurements.segments))
         moved = (stats.matched >= min_features) & (stats.outlier_ratio >= 1.0 - UNSUPPORTED_STATIC_SHARE) & (
             static_count < min_features)
         candidates &= ~seen_static | moved
@@ -610,6 +618,9 @@ class Reconstructor:
         static_inliers = np.zeros(num_points, dtype=bool)
         if static is not None:
             static_inliers, _ = inlier_mask(static.matched, static.result, num_points, num_planes)
+        by_id = {o.object_map.object_id: o for o in outcomes if o.success}
+        hulls = {object_id: extent_hull(o.object_map.points.positions[o.object_map.points.active])
+                 for object_id, o in by_id.items()}  # each object's extent, once per frame
         if tracked and self.config.objects.segment_completion:
             # Evidence: points that are inliers of the registration of the map they were given to.
             evidence = static_inliers & (point_owner == 0)
@@ -617,14 +628,12 @@ class Reconstructor:
                 evidence |= (point_owner == r.object_id) & (r.frame_inliers_points | r.segment_inliers_points)
             segment_owner = complete_segments(point_segment, len(segments), point_owner, evidence,
                                               [r.object_id for r in tracked], self.config.detection.min_segment_features)
-            poses = {o.object_map.object_id: (o.object_map, o.T_o_c) for o in outcomes if o.success}
             for r in tracked:
                 own = np.flatnonzero(segment_owner == r.object_id).tolist()
-                object_map, T_o_c = poses[r.object_id]
                 inside = None if not self.config.objects.grow_inside_extent else segments_inside_extent(
-                    segments.label_image, frame.depth, self.intrinsics, T_o_c,
-                    object_map.points.positions[object_map.points.active], self.config.noise, len(segments),
-                    self.config.objects.extent_margin, self.config.objects.extent_share)
+                    segments.label_image, frame.depth, self.intrinsics, by_id[r.object_id].T_o_c, hulls[r.object_id],
+                    self.config.noise, len(segments), self.config.objects.extent_margin,
+                    self.config.objects.extent_share)
                 grown = self._grow(frame, measurements, own, static_inliers, segment_owner, inside)
                 segment_owner[[s for s in grown if segment_owner[s] == 0]] = r.object_id
             # Features and planes inside an object's segment go to that object, matched or not:
@@ -641,18 +650,19 @@ class Reconstructor:
             object_inliers = np.zeros(num_points, dtype=bool)
             for r in tracked:
                 object_inliers |= r.frame_inliers_points | r.segment_inliers_points
-            self._split_mixed_segments(frame, measurements, assignment, static_inliers & ~object_inliers,
-                                       {o.object_map.object_id: o for o in outcomes if o.success})
+            self._split_mixed_segments(frame, measurements, assignment, static_inliers & ~object_inliers, by_id, hulls)
         return assignment
 
     def _split_mixed_segments(self, frame: Frame, measurements: FrameMeasurements, assignment: FrameAssignment,
-                              static_evidence: np.ndarray, outcomes: dict[int, ObjectTrackingResult]) -> None:
+                              static_evidence: np.ndarray, outcomes: dict[int, ObjectTrackingResult],
+                              hulls: dict) -> None:
         """Beyond the paper, which takes segments to be parts of one surface: a segment given
         to an object that also holds ``detection.min_segment_features`` static-registration
         inliers (``static_evidence`` ``(N,)``: not inliers of any object) spans the object and
-        the static scene (a box standing on a table, in one depth segment). Its static inliers
-        stay static, and only its pixels inside the object's extent (:func:`pixels_inside_hull`)
-        go into the object's mask (``objects.split_mixed_segments``)."""
+        the static scene (a box standing on a table, in one depth segment). Its static inliers,
+        and its features outside the object's extent (:func:`pixels_inside_hull`), stay static;
+        only its pixels inside that extent go into the object's mask; a plane that is such a
+        segment stays static (``objects.split_mixed_segments``)."""
         segments = measurements.segments
         point_segment = segments.segment_of_points(len(measurements.points))
         owner_of_point = np.where(point_segment >= 0, assignment.segment_owner[np.maximum(point_segment, 0)], 0)
@@ -664,20 +674,27 @@ class Reconstructor:
             return
         in_mixed = np.isin(point_segment, mixed)
         assignment.point_owner[evidence & in_mixed] = 0
+        plane_segment = segment_of_planes(segments, len(measurements.planes))
+        assignment.plane_owner[np.isin(plane_segment, mixed)] = 0
         labels = segments.label_image
         not_object = np.zeros(labels.shape, dtype=bool)
+        points = measurements.points
         for segment in mixed:
             object_id = int(assignment.segment_owner[segment])
-            outcome = outcomes.get(object_id)
-            hull = None if outcome is None else extent_hull(
-                outcome.object_map.points.positions[outcome.object_map.points.active])
+            outcome, hull = outcomes.get(object_id), hulls.get(object_id)
+            if outcome is None or hull is None:
+                continue
             rows, cols = np.nonzero(labels == segment)
             depth = frame.depth[rows, cols]
-            if hull is None:
-                continue
             inside = (depth > 0) & pixels_inside_hull(rows, cols, depth, self.intrinsics, outcome.T_o_c, hull,
                                                       self.config.noise, self.config.objects.extent_margin)
             not_object[rows[~inside], cols[~inside]] = True
+            members = np.flatnonzero((point_segment == segment) & (assignment.point_owner == object_id))
+            if len(members):
+                member_inside = points.has_depth[members] & pixels_inside_hull(
+                    points.pixels[members, 1], points.pixels[members, 0], np.nan_to_num(points.points[members, 2]),
+                    self.intrinsics, outcome.T_o_c, hull, self.config.noise, self.config.objects.extent_margin)
+                assignment.point_owner[members[~member_inside]] = 0
             logger.debug("frame %d: segment %d is mixed (%d static inliers); %d of %d pixels are object %d",
                          measurements.frame_index, segment, counts[segment], int(inside.sum()), len(rows), object_id)
         assignment.not_object_pixels = not_object
@@ -793,7 +810,7 @@ class Reconstructor:
                                                     plane=np.zeros(0, dtype=np.int64))
             ransac = dataclasses.replace(self.config.ransac, min_matches=self.config.detection.min_segment_features,
                                          min_inliers=self.config.detection.min_segment_features, min_inlier_ratio=0.5)
-            motion = register(subset, ransac, self.config.noise, self.rng)
+            motion = register(subset, ransac, self.config.noise, self.objects_rng)
             if not motion.success:
                 continue
             # The region's motion relative to the static scene, seen from the camera: a small one
@@ -868,7 +885,7 @@ class Reconstructor:
                 continue
             matched = match_frame_to_map(measurements, object_map, np.flatnonzero(object_map.points.active), None,
                                          self.config, self._focal_length, point_measurements=group_points)
-            result = register(matched.correspondences, self.config.ransac, self.config.noise, self.rng)
+            result = register(matched.correspondences, self.config.ransac, self.config.noise, self.objects_rng)
             if not result.success:
                 continue
             logger.info("frame %d: moving region %s is object %d again", measurements.frame_index, group,
@@ -912,6 +929,10 @@ class Reconstructor:
         plane_ids = np.flatnonzero((plane_segment >= 0) & members[np.maximum(plane_segment, 0)]
                                    & (assignment.plane_owner == 0))
         if len(point_ids) < min(self.config.detection.min_object_points, self.config.ransac.min_matches):
+            return None
+        if self._next_object_id > MAX_OBJECT_ID:
+            logger.warning("frame %d: %d object maps already; no more are started (masks hold ids up to %d)",
+                           frame.index, MAX_OBJECT_ID, MAX_OBJECT_ID)
             return None
         object_id = self._next_object_id  # ids are never reused, also after merges
         self._next_object_id += 1
@@ -1115,6 +1136,7 @@ class Reconstructor:
         T_o_c = result.transformation
         object_map.lost = False
         object_map.last_T_o_c = T_o_c
+        object_map.last_tracked_frame = frame.index
         object_map.frames_tracked += 1
         report.objects_tracked.append(object_map.object_id)
         if report.tracked:

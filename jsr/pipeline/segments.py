@@ -114,8 +114,9 @@ CREASE_BAND = 1  # subsampled px: dilation of the cut along a crease (1: none; t
 def concave_creases(depth: np.ndarray, intrinsics: CameraIntrinsics, angle_degrees: float,
                     max_step: float = 0.02, step_sigmas: float = 4.0, sigma_coefficient: float = 1.425e-3,
                     ) -> np.ndarray:
-    """``(H, W)`` bool: the pixels of concave creases (see the module docstring), a band
-    ``CREASE_BAND`` pixels wide so that the cut has no gaps for a region to leak through.
+    """``(H, W)`` bool: the pixels of concave creases (see the module docstring): the middles
+    of all straddling pairs, a band about 6-8 px wide (dilated by ``CREASE_BAND``), so that
+    the cut has few gaps for a region to leak through.
 
     ``depth`` ``(H, W)`` float32 metres, 0 invalid; pinhole back-projection with
     ``intrinsics``. Tangents across a depth discontinuity (a depth change of more than
