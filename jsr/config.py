@@ -132,7 +132,7 @@ class DetectionConfig:
     min_segment_features: int = 5
     significance: float = 0.01
     require_rigid_motion: bool = True
-    free_space_veto: bool = False
+    free_space_veto_motion: float = 0.06
     vacancy_veto: bool = True
     min_motion: float = 0.03
     min_motion_degrees: float = 3.0
@@ -283,6 +283,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "objects.retire_after_vacated": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.free_space_margin": (lambda v: v > 0, "positive"),
     "objects.extent_margin": (lambda v: v >= 0, "at least 0"),
+    "detection.free_space_veto_motion": (lambda v: v >= 0, "at least 0 (0: no veto)"),
     "segments.concave_angle_degrees": (lambda v: 0 <= v < 180, "in [0, 180) (0: no crease cuts)"),
     "objects.extent_share": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "objects.free_space_sigmas": (lambda v: v > 0, "positive"),

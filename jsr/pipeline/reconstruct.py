@@ -715,13 +715,6 @@ class Reconstructor:
                                              exclude=assignment.point_owner > 0)
         by_outliers = self._not_in_place(measurements, static, by_outliers, inliers, report.T_w_c, keep_unknown=False)
         violations, consistent = self._free_space(frame, measurements)
-        if self.config.objects.free_space_detection and self.config.detection.free_space_veto:
-            # A region whose surface is where the static keyframes saw one has most likely not
-            # moved either (on real data, outliers that agree on a motion also come from a
-            # camera pose that is off over part of the image).
-            sampled = violations + consistent
-            min_samples = self._free_space_min_samples()
-            by_outliers = [s for s in by_outliers if sampled[s] < min_samples or consistent[s] < 0.5 * sampled[s]]
         by_outliers = self._rigidly_moved(frame, measurements, static, by_outliers, inliers)
         by_free_space = self._free_space_segments(measurements, violations, consistent, inliers)
         by_free_space = self._not_in_place(measurements, static, by_free_space, inliers, report.T_w_c,
@@ -809,7 +802,8 @@ class Reconstructor:
             subset = matched.correspondences.subset(point3d=rows, point2d=np.zeros(0, dtype=np.int64),
                                                     plane=np.zeros(0, dtype=np.int64))
             ransac = dataclasses.replace(self.config.ransac, min_matches=self.config.detection.min_segment_features,
-                                         min_inliers=self.config.detection.min_segment_features, min_inlier_ratio=0.5)
+                                         min_inliers=max(self.config.detection.min_segment_features,
+                                                         self.config.ransac.min_inliers), min_inlier_ratio=0.5)
             motion = register(subset, ransac, self.config.noise, self.objects_rng)
             if not motion.success:
                 continue
@@ -823,6 +817,11 @@ class Reconstructor:
             detection = self.config.detection
             if not (moved >= detection.min_motion or turned >= detection.min_motion_degrees):
                 continue
+            if moved < detection.free_space_veto_motion and self._seen_static(frame, measurements, group):
+                # A small motion of a region whose surface is where the static keyframes saw
+                # one: on real data, a camera pose that is off over part of the image.
+                logger.debug("frame %d: segments %s: surface seen there before", measurements.frame_index, group)
+                continue
             if detection.vacancy_veto and self._old_place_still_there(frame.depth, segments, group,
                                                                       static.result.transformation,
                                                                       motion.transformation):
@@ -831,6 +830,15 @@ class Reconstructor:
                 continue
             confirmed.extend(group)
         return sorted(confirmed)
+
+    def _seen_static(self, frame: Frame, measurements: FrameMeasurements, group: list[int]) -> bool:
+        """Whether most sampled pixels of the segments ``group`` lie where the latest static
+        keyframes saw a surface (free-space test; False when too few pixels could be tested)."""
+        if not (self.config.objects.free_space_detection and self.depth_views):
+            return False
+        violations, consistent = self._free_space(frame, measurements)
+        sampled = int(violations[group].sum() + consistent[group].sum())
+        return sampled >= self._free_space_min_samples() and consistent[group].sum() >= 0.5 * sampled
 
     def _old_place_still_there(self, depth: np.ndarray, segments, group: list[int], T_w_c: np.ndarray,
                                T_w_old: np.ndarray) -> bool:
