@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from jsr.config import Config
+from jsr.geometry import backproject_pixels, inlier_threshold, transform_points
 from jsr.pipeline.association import (
     MatchedFrame,
     match_frame_guided,
@@ -379,11 +380,10 @@ def pixels_inside_hull(rows: np.ndarray, cols: np.ndarray, depths: np.ndarray, i
     moved into the object frame with ``T_o_c``, lies inside ``hull`` widened by
     ``max(margin, inlier_sigmas sigma_Z)``."""
     zs = np.asarray(depths, dtype=np.float64)
-    camera = np.column_stack([(cols - intrinsics.cx) / intrinsics.fx * zs, (rows - intrinsics.cy) / intrinsics.fy * zs,
-                              zs])
-    in_object = camera @ T_o_c[:3, :3].T + T_o_c[:3, 3]
+    camera = backproject_pixels(cols, rows, zs, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
+    in_object = transform_points(T_o_c, camera)
     outside = np.max(in_object @ hull.equations[:, :3].T + hull.equations[:, 3], axis=1)  # > 0: outside
-    return outside <= np.maximum(margin, noise.inlier_sigmas * noise.sigma_z_coefficient * zs**2)
+    return outside <= inlier_threshold(zs, noise.sigma_z_coefficient, noise.inlier_sigmas, margin)
 
 
 UNSUPPORTED_STATIC_SHARE = 0.2  # a segment with a larger share of static-inlier features is supported by the static map
@@ -525,7 +525,7 @@ def merge_object_maps(target: ObjectMap, source: ObjectMap, T_target_source: np.
     lists remapped, and the trajectories joined (``target``'s pose wins in a frame both have).
     Returns ``(L_source,)`` the new landmark id of every ``source`` landmark.
     """
-    from jsr.geometry import transform_planes, transform_points
+    from jsr.geometry import transform_planes
     from jsr.pipeline.maps import Keyframe
 
     points = source.points

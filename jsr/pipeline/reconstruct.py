@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from jsr.config import Config
-from jsr.geometry import rotation_angle
+from jsr.geometry import backproject_pixels, inlier_threshold, invert_transform, rotation_angle, transform_points
 from jsr.io.camera import CameraIntrinsics
 from jsr.io.dataset import Frame
 from jsr.pipeline.bundle import BundleScheduler
@@ -840,6 +840,22 @@ class Reconstructor:
         sampled = int(violations[group].sum() + consistent[group].sum())
         return sampled >= self._free_space_min_samples() and consistent[group].sum() >= 0.5 * sampled
 
+    def _depth_at_projections(self, camera_points: np.ndarray, depth: np.ndarray
+                              ) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray, np.ndarray]:
+        """``(N, 3)`` camera-frame points projected into ``depth`` ``(H, W)``: their rounded
+        pixels ``(u, v)`` (each ``(N,)`` int), whether they fall in the image in front of the
+        camera ``(N,)``, and the depth measured there ``(N,)`` (0 outside or invalid)."""
+        intr = self.intrinsics
+        z = camera_points[:, 2]
+        safe = np.where(z > 1e-3, z, 1.0)
+        u = np.round(intr.fx * camera_points[:, 0] / safe + intr.cx).astype(np.int64)
+        v = np.round(intr.fy * camera_points[:, 1] / safe + intr.cy).astype(np.int64)
+        height, width = depth.shape
+        inside = (z > 1e-3) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        measured = np.zeros(len(z))
+        measured[inside] = depth[v[inside], u[inside]]
+        return (u, v), inside, measured
+
     def _old_place_still_there(self, depth: np.ndarray, segments, group: list[int], T_w_c: np.ndarray,
                                T_w_old: np.ndarray) -> bool:
         """Whether the surface a region would have come from is still where it was.
@@ -861,23 +877,17 @@ class Reconstructor:
         if not len(rows):
             return False
         intr = self.intrinsics
-        z = sub_depth[rows, cols]
-        u, v = cols * stride, rows * stride
-        camera = np.column_stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z])
-        old_world = camera @ T_w_old[:3, :3].T + T_w_old[:3, 3]
-        old_camera = (old_world - T_w_c[:3, 3]) @ T_w_c[:3, :3]  # the old place seen from this camera
+        camera = backproject_pixels(cols * stride, rows * stride, sub_depth[rows, cols], intr.fx, intr.fy, intr.cx,
+                                    intr.cy)
+        old_world = transform_points(T_w_old, camera)
+        old_camera = transform_points(invert_transform(T_w_c), old_world)  # the old place seen from this camera
         zo = old_camera[:, 2]
-        safe = np.where(zo > 1e-3, zo, 1.0)
-        uo = np.round(intr.fx * old_camera[:, 0] / safe + intr.cx).astype(np.int64)
-        vo = np.round(intr.fy * old_camera[:, 1] / safe + intr.cy).astype(np.int64)
-        height, width = depth.shape
-        inside = (zo > 1e-3) & (uo >= 0) & (uo < width) & (vo >= 0) & (vo < height)
-        inside[inside] &= ~np.isin(labels[vo[inside], uo[inside]], group)
-        seen = np.zeros(len(zo))
-        seen[inside] = depth[vo[inside], uo[inside]]
-        known = inside & (seen > 0)
+        (uo, vo), inside, seen = self._depth_at_projections(old_camera, depth)
+        on_region = np.zeros(len(zo), dtype=bool)
+        on_region[inside] = np.isin(labels[vo[inside], uo[inside]], group)
+        known = ~on_region & (seen > 0)
         noise = self.config.noise
-        margin = np.maximum(noise.min_inlier_threshold, noise.inlier_sigmas * noise.sigma_z_coefficient * zo**2)
+        margin = inlier_threshold(zo, noise.sigma_z_coefficient, noise.inlier_sigmas, noise.min_inlier_threshold)
         there = known & (np.abs(seen - zo) <= margin)
         vacated = known & (seen > zo + margin)
         evidence = int(there.sum() + vacated.sum())
@@ -1109,15 +1119,8 @@ class Reconstructor:
             return
         camera = (points.positions[ids] - T_w_c[:3, 3]) @ T_w_c[:3, :3]
         z = camera[:, 2]
-        intrinsics = self.intrinsics
-        safe = np.where(z > 1e-3, z, 1.0)
-        u = np.round(intrinsics.fx * camera[:, 0] / safe + intrinsics.cx).astype(np.int64)
-        v = np.round(intrinsics.fy * camera[:, 1] / safe + intrinsics.cy).astype(np.int64)
-        height, width = frame.depth.shape
-        inside = (z > 1e-3) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-        measured = np.zeros(len(ids))
-        measured[inside] = frame.depth[v[inside], u[inside]]
-        seen = inside & (measured > 0)
+        _, _, measured = self._depth_at_projections(camera, frame.depth)
+        seen = measured > 0
         noise = self.config.noise
         # the free-space test's margins: only a surface clearly gone counts, not a depth edge
         margin = np.maximum(config.free_space_margin, config.free_space_sigmas * noise.sigma_z_coefficient * z**2)
