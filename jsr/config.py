@@ -49,6 +49,8 @@ class FeaturesConfig:
     contrast_threshold: float = 0.02
     edge_threshold: float = 10.0
     half_resolution: bool = True
+    object_detail: bool = True
+    object_detail_margin: float = 0.5
     depth_window: int = 2
     depth_spread_sigmas: float = 6.0
     min_depth_spread: float = 0.02
@@ -156,6 +158,9 @@ class ObjectsConfig:
     retire_after_outliers: int = 0
     retire_after_vacated: int = 0
     reidentify: bool = True
+    shape_reidentify: bool = False
+    shape_voxel: float = 0.01
+    shape_radius_px: float = 40.0
     merge_maps: bool = True
     merge_min_shared_inliers: int = 5
     map_merge_min_inliers: int = 12
@@ -287,6 +292,9 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "segments.concave_angle_degrees": (lambda v: 0 <= v < 180, "in [0, 180) (0: no crease cuts)"),
     "objects.extent_share": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "objects.free_space_sigmas": (lambda v: v > 0, "positive"),
+    "objects.shape_voxel": (lambda v: v > 0, "positive"),
+    "features.object_detail_margin": (lambda v: v >= 0, "at least 0"),
+    "objects.shape_radius_px": (lambda v: v > 0, "positive"),
     "objects.merge_min_shared_inliers": (lambda v: v >= 1, "at least 1"),
     "objects.map_merge_min_inliers": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.free_space_min_pixels": (lambda v: v >= 1, "at least 1"),

@@ -10,7 +10,10 @@ from jsr.config import Config
 from jsr.io.camera import CAMERA_PRESETS, CameraIntrinsics
 from jsr.pipeline.features import (
     build_point_measurements,
+    create_sift,
+    detect_detail_keypoints,
     detect_keypoints,
+    join_boxes,
     extract_point_measurements,
     lookup_depth,
     to_grey,
@@ -198,3 +201,28 @@ def test_no_keypoints_gives_empty_measurements():
     blank = np.full((480, 640, 3), 90, np.uint8)
     result = extract_point_measurements(blank, np.ones((480, 640), np.float32), intrinsics, config.features, config.noise)
     assert len(result) == 0 and result.points.shape == (0, 3) and result.descriptors.shape == (0, 128)
+
+
+def test_detail_keypoints_add_the_finest_scale_inside_the_box_only():
+    """Full-resolution SIFT in a box adds keypoints there that half-resolution SIFT misses,
+    and none outside the box."""
+    import dataclasses
+
+    cfg = Config().features
+    grey = to_grey(cv2.resize(textured_image(240, 320, seed=4), (640, 480), interpolation=cv2.INTER_LINEAR))
+    grey = cv2.add(grey, np.random.default_rng(1).integers(0, 40, grey.shape, dtype=np.uint8))  # fine texture
+    box = (200, 150, 400, 330)
+    coarse, _ = detect_keypoints(grey, cfg)
+    detail, descriptors = detect_detail_keypoints(grey, [box], create_sift(dataclasses.replace(cfg, max_keypoints=0)))
+    assert len(detail) == len(descriptors) > 0
+    inside = (detail[:, 0] >= box[0]) & (detail[:, 0] < box[2]) & (detail[:, 1] >= box[1]) & (detail[:, 1] < box[3])
+    assert inside.all()
+    coarse_inside = ((coarse[:, 0] >= box[0]) & (coarse[:, 0] < box[2]) & (coarse[:, 1] >= box[1])
+                     & (coarse[:, 1] < box[3])).sum()
+    assert len(detail) > coarse_inside  # the finest octave holds most keypoints of a fine texture
+
+
+def test_join_boxes_merges_overlaps():
+    assert join_boxes([(0, 0, 10, 10), (5, 5, 20, 20), (30, 30, 40, 40)]) == [(0, 0, 20, 20), (30, 30, 40, 40)]
+    assert join_boxes([(0, 0, 10, 10), (10, 0, 20, 10)]) == [(0, 0, 10, 10), (10, 0, 20, 10)]  # touching only
+    assert join_boxes([(5, 5, 5, 9)]) == []  # empty

@@ -11,6 +11,7 @@ and description, in the worker), ``planes``, ``depth_lookup``, ``segments`` and 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -20,7 +21,13 @@ import numpy as np
 from jsr.config import Config
 from jsr.io.camera import CameraIntrinsics
 from jsr.io.dataset import Frame
-from jsr.pipeline.features import build_point_measurements, create_sift, detect_keypoints, to_grey
+from jsr.pipeline.features import (
+    build_point_measurements,
+    create_sift,
+    detect_detail_keypoints,
+    detect_keypoints,
+    to_grey,
+)
 from jsr.pipeline.measurements import FrameMeasurements
 from jsr.pipeline.planes import extract_planes
 from jsr.pipeline.segments import build_segments
@@ -42,7 +49,6 @@ def scaled_to_resolution(config: Config, width: int, height: int) -> Config:
     and pixel counts with the area (a 320x240 frame would otherwise miss every plane below a
     quarter of the image).
     """
-    import dataclasses
 
     linear = width / REFERENCE_WIDTH
     area = (width * height) / (REFERENCE_WIDTH * REFERENCE_HEIGHT)
@@ -74,6 +80,8 @@ class FrontEnd:
         self.config = scaled_to_resolution(config, intrinsics.width, intrinsics.height)
         self.intrinsics = intrinsics
         self._sift = create_sift(config.features)
+        # full-resolution SIFT for the object boxes (features.object_detail)
+        self._detail_sift = create_sift(dataclasses.replace(config.features, max_keypoints=0))
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jsr-sift") if parallel else None
 
     def __enter__(self) -> "FrontEnd":
@@ -88,20 +96,28 @@ class FrontEnd:
             self._executor.shutdown(wait=True)
             self._executor = None
 
-    def _detect(self, color: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    def _detect(self, color: np.ndarray, detail_boxes) -> tuple[np.ndarray, np.ndarray, float]:
         start = time.perf_counter()
-        pixels, descriptors = detect_keypoints(to_grey(color), self.config.features, self._sift)
+        grey = to_grey(color)
+        pixels, descriptors = detect_keypoints(grey, self.config.features, self._sift)
+        features = self.config.features
+        if detail_boxes and features.half_resolution and features.object_detail:
+            detail_pixels, detail_descriptors = detect_detail_keypoints(grey, detail_boxes, self._detail_sift)
+            pixels = np.concatenate([pixels, detail_pixels])
+            descriptors = np.concatenate([descriptors, detail_descriptors])
         return pixels, descriptors, (time.perf_counter() - start) * 1000.0
 
-    def process(self, frame: Frame) -> FrameMeasurements:
-        """Points, planes and segments of ``frame``, with per-stage timings."""
+    def process(self, frame: Frame, detail_boxes: list[tuple[int, int, int, int]] | None = None) -> FrameMeasurements:
+        """Points, planes and segments of ``frame``, with per-stage timings. ``detail_boxes``
+        (``x0, y0, x1, y1`` pixels, e.g. where objects were in the previous frame) also get
+        the finest-scale SIFT keypoints (``features.object_detail``)."""
         config = self.config
         start = time.perf_counter()
         if self._executor is not None:
-            pending = self._executor.submit(self._detect, frame.color)
+            pending = self._executor.submit(self._detect, frame.color, detail_boxes)
         else:
             pending = None
-            detected = self._detect(frame.color)
+            detected = self._detect(frame.color, detail_boxes)
 
         planes_start = time.perf_counter()
         planes = extract_planes(frame.depth, self.intrinsics, config.planes, config.noise, config.features.undistort)

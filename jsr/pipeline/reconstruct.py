@@ -36,6 +36,8 @@ from jsr.pipeline.association import (
     inlier_landmarks,
     inlier_plane_landmarks,
     match_frame_to_map,
+    matched_frame_from_pairs,
+    predicted_plane_pairs,
     sample_colors,
 )
 from jsr.pipeline.classify import ObjectRegistration, classify_measurements, segment_of_planes
@@ -60,6 +62,7 @@ from jsr.pipeline.objects import (
     UNSUPPORTED_STATIC_SHARE,
 )
 from jsr.pipeline.registration import RegistrationResult, register
+from jsr.pipeline.surfaces import SurfaceModel, SurfaceSample, align_surfaces, build_model, region_model, sample_surface
 from jsr.pipeline.vlad import SegmentIndex, VladVocabulary
 
 logger = logging.getLogger(__name__)
@@ -68,6 +71,8 @@ STATIC_MAP = "static"
 FREE_SPACE_STRIDE = 4  # free-space tests sample every 4th pixel of every 4th row
 FREE_SPACE_VIEWS = 2  # ... against the latest static keyframes
 MAX_OBJECT_ID = 255  # ownership masks are uint8 images
+SHAPE_CANDIDATES = 4  # surface alignments (best colour agreement first) tried by feature matching
+SURFACE_STRIDE = 2  # object surface samples (shape-based re-identification) use every 2nd pixel and row
 OWNERSHIP_FILL_RADIUS = 3  # px at 640 wide: pixels in no segment (no depth) take the owner of most labelled neighbours
 
 
@@ -198,10 +203,14 @@ class Reconstructor:
         # models fuse only the pixels each map received.
         self.keyframe_masks: dict[int, np.ndarray] = {}
         self.merged_into: dict[int, int] = {}  # object id -> the id of the map it was merged into
+        # Surface samples (camera frame) of the object keyframes: frame index -> object id ->
+        # sample; an object's surface model for shape-based re-identification.
+        self.object_surfaces: dict[int, dict[int, SurfaceSample]] = {}
         self._next_object_id = 1
         self._adjacency_cache: np.ndarray | None = None
         self._free_space_cache: tuple[np.ndarray, np.ndarray] | None = None
         self._frame_pose: np.ndarray | None = None  # T_w_c of the frame being processed, if tracked
+        self._previous_mask: np.ndarray | None = None  # (H, W) uint8 ownership image of the last frame
         self._static_matched: np.ndarray | None = None  # (N,) bool: its points matched to the static map
         # Subsampled depth of the latest static keyframes, for free-space tests (detection).
         self.depth_views: list[tuple[int, DepthView]] = []
@@ -216,7 +225,7 @@ class Reconstructor:
     def process(self, frame: Frame) -> FrameReport:
         """Process one frame; never raises for a frame that simply cannot be registered."""
         started = time.perf_counter()
-        measurements = self.frontend.process(frame)
+        measurements = self.frontend.process(frame, self._detail_boxes(frame))
         # Bundle adjustments started after earlier keyframes ran while the front-end worked;
         # they are applied here, always at this point, so runs stay reproducible.
         for map_ in self.maps:
@@ -237,9 +246,11 @@ class Reconstructor:
             report.reference_keyframe = reference.keyframe_id
             report.T_keyframe_cam = np.linalg.inv(reference.T_map_cam) @ report.T_w_c
         report.mask = self._ownership_image(measurements, assignment)
+        self._previous_mask = report.mask  # report.mask may be dropped by the caller once written
         if report.new_keyframe or report.objects_created or any(
                 m.keyframes and m.keyframes[-1].frame_index == frame.index for m in self.object_maps):
             self.keyframe_masks[frame.index] = report.mask
+            self._remember_surfaces(frame, report.mask)
         report.maps = {STATIC_MAP: MapCounts(len(self.static_map.keyframes), self.static_map.points.active_count,
                                              len(self.static_map.planes), report.tracked)}
         for object_map in self.object_maps:
@@ -250,6 +261,24 @@ class Reconstructor:
         report.timings_ms = timings
         self.reports.append(report)
         return report
+
+    def _detail_boxes(self, frame: Frame) -> list[tuple[int, int, int, int]]:
+        """Pixel boxes ``(x0, y0, x1, y1)`` of the objects in the previous frame's ownership
+        image, grown by ``features.object_detail_margin`` of their size on every side: where
+        the front-end adds the finest-scale keypoints (small objects carry few otherwise)."""
+        features = self.config.features
+        mask = self._previous_mask
+        if not (self.config.objects.enabled and features.object_detail) or mask is None or not mask.any():
+            return []
+        height, width = frame.depth.shape
+        boxes = []
+        for object_id in np.unique(mask[mask > 0]):
+            rows, cols = np.nonzero(mask == object_id)
+            x0, x1, y0, y1 = cols.min(), cols.max() + 1, rows.min(), rows.max() + 1
+            grow_x = int(round(features.object_detail_margin * (x1 - x0)))
+            grow_y = int(round(features.object_detail_margin * (y1 - y0)))
+            boxes.append((max(0, x0 - grow_x), max(0, y0 - grow_y), min(width, x1 + grow_x), min(height, y1 + grow_y)))
+        return boxes
 
     def _process_tracking(self, frame: Frame, measurements: FrameMeasurements, report: FrameReport,
                           timings: dict) -> FrameAssignment:
@@ -513,6 +542,10 @@ class Reconstructor:
             mask = self.keyframe_masks.get(index)
             if mask is not None:
                 mask[mask == source.object_id] = target.object_id
+            surfaces = self.object_surfaces.get(index, {})
+            if source.object_id in surfaces:
+                sample = surfaces.pop(source.object_id)
+                surfaces.setdefault(target.object_id, sample)
         logger.info("frame %d: object %d is object %d (%s); maps merged", frame_index, source.object_id,
                     target.object_id, evidence)
 
@@ -731,7 +764,7 @@ class Reconstructor:
             group_points = group_points[assignment.point_owner[group_points] == 0]
             if int(points.has_depth[group_points].sum()) < self.config.detection.min_object_points:
                 continue
-            if self.config.objects.reidentify and self._reidentify(measurements, group, group_points, by_id,
+            if self.config.objects.reidentify and self._reidentify(frame, measurements, group, group_points, by_id,
                                                                    assignment):
                 continue
             object_map = self._start_object(frame, measurements, group, report.T_w_c, assignment)
@@ -893,33 +926,125 @@ class Reconstructor:
         evidence = int(there.sum() + vacated.sum())
         return evidence >= self._free_space_min_samples() and there.sum() >= 0.5 * evidence
 
-    def _reidentify(self, measurements: FrameMeasurements, group: list[int], group_points: np.ndarray,
+    def _reidentify(self, frame: Frame, measurements: FrameMeasurements, group: list[int], group_points: np.ndarray,
                     outcomes: dict[int, ObjectTrackingResult], assignment: FrameAssignment) -> bool:
         """Register a moving region against every object map not tracked in this frame, whole
-        map and no prediction; on success the region is that object (it is tracked again)."""
-        for object_map in self.object_maps:
-            outcome = outcomes.get(object_map.object_id)
-            if outcome is None or outcome.success:
-                continue
+        map and no prediction; on success the region is that object (it is tracked again).
+        When features find none, :meth:`_reidentify_by_shape` tries the region's surface
+        (``objects.shape_reidentify``)."""
+        lost = [m for m in self.object_maps
+                if outcomes.get(m.object_id) is not None and not outcomes[m.object_id].success]
+        for object_map in lost:
             matched = match_frame_to_map(measurements, object_map, np.flatnonzero(object_map.points.active), None,
                                          self.config, self._focal_length, point_measurements=group_points)
             result = register(matched.correspondences, self.config.ransac, self.config.noise, self.objects_rng)
-            if not result.success:
-                continue
-            logger.info("frame %d: moving region %s is object %d again", measurements.frame_index, group,
-                        object_map.object_id)
-            outcome.frame_matched, outcome.frame_result = matched, result
-            segment_members = np.zeros(len(measurements.segments), dtype=bool)
-            segment_members[group] = True
-            assignment.segment_owner[group] = object_map.object_id
-            point_segment = measurements.segments.segment_of_points(len(measurements.points))
-            in_group = (point_segment >= 0) & segment_members[np.maximum(point_segment, 0)]
-            assignment.point_owner[in_group & (assignment.point_owner == 0)] = object_map.object_id
-            plane_segment = segment_of_planes(measurements.segments, len(measurements.planes))
-            plane_in_group = (plane_segment >= 0) & segment_members[np.maximum(plane_segment, 0)]
-            assignment.plane_owner[plane_in_group & (assignment.plane_owner == 0)] = object_map.object_id
-            return True
+            if result.success:
+                logger.info("frame %d: moving region %s is object %d again", measurements.frame_index, group,
+                            object_map.object_id)
+                self._claim_region(measurements, group, outcomes[object_map.object_id], matched, result, assignment)
+                return True
+        if self.config.objects.shape_reidentify and lost:
+            return self._reidentify_by_shape(frame, measurements, group, group_points, lost, outcomes, assignment)
         return False
+
+    def _reidentify_by_shape(self, frame: Frame, measurements: FrameMeasurements, group: list[int],
+                             group_points: np.ndarray, lost: list[ObjectMap],
+                             outcomes: dict[int, ObjectTrackingResult], assignment: FrameAssignment) -> bool:
+        """The region's surface aligned to each lost object's surface model
+        (:func:`~jsr.pipeline.surfaces.align_surfaces`); each alignment is a pose prediction
+        for prediction-based matching of the region's keypoints with the object's landmarks
+        (``objects.shape_radius_px``). The registration with most inliers wins if it succeeds
+        with at least ``ransac.min_inliers`` inliers and stays near its prediction (20 cm, 30
+        degrees): the landmarks confirm the shape, which alone fits a box four ways."""
+        config = self.config.objects
+        region_mask = np.isin(measurements.segments.label_image, group)
+        sample = sample_surface(frame.depth, frame.color, region_mask, self.intrinsics, SURFACE_STRIDE,
+                                0.5 * config.shape_voxel)
+        region = region_model(sample, config.shape_voxel)
+        if region is None:
+            return False
+        points = measurements.points
+        best = None
+        for object_map in lost:
+            model = self._surface_model(object_map)
+            if model is None:
+                continue
+            landmarks = np.flatnonzero(object_map.points.active)
+            alignments = align_surfaces(region, model, config.shape_voxel, self.objects_rng)
+            logger.debug("frame %d: region %s (%d surface points) vs object %d (%d): %d alignments",
+                         measurements.frame_index, group, len(region.points), object_map.object_id,
+                         len(model.points), len(alignments))
+            for alignment in alignments[:SHAPE_CANDIDATES]:
+                T_o_c = alignment.T_model_region
+                found = guided_match(points.pixels[group_points], points.descriptors[group_points],
+                                     object_map.points.positions[landmarks], object_map.points.descriptors[landmarks],
+                                     T_o_c, self.intrinsics, config.shape_radius_px, self.config.matching.ratio_test,
+                                     self.config.matching.max_descriptor_distance)
+                logger.debug("frame %d: object %d, surface alignment with fitness %.2f, colour residual %.3f: "
+                             "%d landmark matches", measurements.frame_index, object_map.object_id, alignment.fitness,
+                             alignment.color_residual, len(found))
+                if len(found) < self.config.ransac.min_matches:
+                    continue
+                pairs = np.column_stack([group_points[found[:, 0]], landmarks[found[:, 1]]]).astype(np.int64)
+                plane_pairs = predicted_plane_pairs(measurements, object_map, T_o_c, self.config)
+                matched = matched_frame_from_pairs(measurements, object_map, pairs, plane_pairs, self._focal_length)
+                result = register(matched.correspondences, self.config.ransac, self.config.noise, self.objects_rng)
+                logger.debug("frame %d: object %d under that alignment: %d of %d inliers", measurements.frame_index,
+                             object_map.object_id, result.num_inliers, result.num_matches)
+                if not result.success or result.num_inliers < self.config.ransac.min_inliers:
+                    continue
+                offset = np.linalg.inv(T_o_c) @ result.transformation
+                if np.linalg.norm(offset[:3, 3]) > 0.2 or np.degrees(rotation_angle(offset[:3, :3])) > 30:
+                    continue
+                if best is None or result.num_inliers > best[3].num_inliers:
+                    best = (object_map, T_o_c, matched, result)
+        if best is None:
+            return False
+        object_map, _, matched, result = best
+        logger.info("frame %d: moving region %s is object %d again (surface alignment, %d of %d landmark matches "
+                    "agree)", measurements.frame_index, group, object_map.object_id, result.num_inliers,
+                    result.num_matches)
+        self._claim_region(measurements, group, outcomes[object_map.object_id], matched, result, assignment)
+        return True
+
+    def _claim_region(self, measurements: FrameMeasurements, group: list[int], outcome: ObjectTrackingResult,
+                      matched: MatchedFrame, result: RegistrationResult, assignment: FrameAssignment) -> None:
+        """The segments ``group`` and their unowned features go to ``outcome``'s object, which
+        is tracked in this frame by ``result``."""
+        object_id = outcome.object_map.object_id
+        outcome.frame_matched, outcome.frame_result = matched, result
+        segment_members = np.zeros(len(measurements.segments), dtype=bool)
+        segment_members[group] = True
+        assignment.segment_owner[group] = object_id
+        point_segment = measurements.segments.segment_of_points(len(measurements.points))
+        in_group = (point_segment >= 0) & segment_members[np.maximum(point_segment, 0)]
+        assignment.point_owner[in_group & (assignment.point_owner == 0)] = object_id
+        plane_segment = segment_of_planes(measurements.segments, len(measurements.planes))
+        plane_in_group = (plane_segment >= 0) & segment_members[np.maximum(plane_segment, 0)]
+        assignment.plane_owner[plane_in_group & (assignment.plane_owner == 0)] = object_id
+
+    def _remember_surfaces(self, frame: Frame, ownership: np.ndarray) -> None:
+        """Keep a surface sample of every object that got a keyframe (or started) in this frame."""
+        if not (self.config.objects.enabled and self.config.objects.shape_reidentify):
+            return
+        samples = {}
+        for object_map in self.object_maps:
+            if object_map.keyframes and object_map.keyframes[-1].frame_index == frame.index:
+                samples[object_map.object_id] = sample_surface(
+                    frame.depth, frame.color, ownership == object_map.object_id, self.intrinsics, SURFACE_STRIDE,
+                    0.5 * self.config.objects.shape_voxel)
+        if samples:
+            self.object_surfaces[frame.index] = samples
+
+    def _surface_model(self, object_map: ObjectMap) -> SurfaceModel | None:
+        """The object's surface in its map frame, from the samples of its keyframes (at their
+        current, bundle-adjusted poses); None without enough points."""
+        views = []
+        for keyframe in object_map.keyframes:
+            sample = self.object_surfaces.get(keyframe.frame_index, {}).get(object_map.object_id)
+            if sample is not None:
+                views.append((keyframe.T_map_cam, sample))
+        return build_model(views, self.config.objects.shape_voxel) if views else None
 
     def _ensure_vocabulary(self, measurements: FrameMeasurements) -> None:
         """Train the VLAD vocabulary once, on the static map's descriptors (and this frame's)."""

@@ -1,0 +1,335 @@
+"""Dense surface samples of object maps, and shape-based alignment of a region to them.
+
+Features alone cannot find an object again after a jump that turned it far: the new view
+shares few SIFT matches with its map that pass the ratio test (on kitchen_box120, 2-6 between
+the maps of one box). Its *shape* still fits the object's surface, seen from another side. This module keeps a
+subsampled coloured surface per object keyframe and aligns a region's surface to an object's
+model: FPFH correspondences (Rusu et al. 2009, via Open3D), a seeded RANSAC of our own (so
+runs are reproducible), the region's 180-degree self-symmetries (a box face fits its model
+four ways), and point-to-plane ICP. The candidate alignments it returns are only pose
+*predictions*: the reconstructor accepts one only when the object's landmarks confirm it by
+prediction-based feature matching and registration.
+
+Experimental and off by default (``objects.shape_reidentify``): on the jump benchmarks the
+alignments it finds are not yet confirmed by enough landmark matches (objects there carry
+20-70 landmarks, and FPFH on a near-cube gives many look-alike fits).
+
+Frames: ``camera`` is the frame of the view a sample was taken in; ``model`` is the object
+map's frame. Transforms are ``(4, 4)`` and map points of the right-hand frame into the left.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from jsr.geometry import backproject_pixels, make_transform, rotation_about_axis, transform_points
+
+
+@dataclass
+class SurfaceSample:
+    """Object pixels of one view: ``points`` ``(N, 3)`` camera frame (float32), ``colors``
+    ``(N, 3)`` uint8 RGB."""
+
+    points: np.ndarray
+    colors: np.ndarray
+
+
+@dataclass
+class SurfaceModel:
+    """An object's surface in its map frame: ``points`` ``(N, 3)``, ``normals`` ``(N, 3)``
+    (unit, facing the cameras that saw them), ``colors`` ``(N, 3)`` float in [0, 1]."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    colors: np.ndarray
+
+
+def sample_surface(depth: np.ndarray, color: np.ndarray, mask: np.ndarray, intrinsics, stride: int,
+                   voxel: float) -> SurfaceSample:
+    """The pixels of ``mask`` ``(H, W)`` bool with valid ``depth`` ``(H, W)`` metres, every
+    ``stride``-th row and column, back-projected and thinned to one point per ``voxel`` cube."""
+    sub_mask = mask[::stride, ::stride] & (depth[::stride, ::stride] > 0)
+    rows, cols = np.nonzero(sub_mask)
+    z = depth[::stride, ::stride][rows, cols].astype(np.float64)
+    points = backproject_pixels(cols * stride, rows * stride, z, intrinsics.fx, intrinsics.fy, intrinsics.cx,
+                                intrinsics.cy)
+    colors = color[rows * stride, cols * stride] if color.ndim == 3 else np.repeat(
+        color[rows * stride, cols * stride, None], 3, axis=1)
+    keep = _one_per_voxel(points, voxel)
+    return SurfaceSample(points[keep].astype(np.float32), np.asarray(colors[keep], dtype=np.uint8))
+
+
+def _one_per_voxel(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Indices of the first point in each occupied ``voxel`` cube (in input order: deterministic)."""
+    if not len(points):
+        return np.zeros(0, dtype=np.int64)
+    cells = np.floor(points / voxel).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    return np.sort(first)
+
+
+def build_model(views: list[tuple[np.ndarray, SurfaceSample]], voxel: float) -> SurfaceModel | None:
+    """One surface from samples ``[(T_model_camera, sample), ...]``, thinned to ``voxel``;
+    None when fewer than 20 points remain."""
+    points, colors, centres = [], [], []
+    for T_model_camera, sample in views:
+        if not len(sample.points):
+            continue
+        points.append(transform_points(T_model_camera, sample.points.astype(np.float64)))
+        colors.append(sample.colors)
+        centres.append(np.repeat(T_model_camera[None, :3, 3], len(sample.points), axis=0))
+    if not points:
+        return None
+    points, colors, centres = np.concatenate(points), np.concatenate(colors), np.concatenate(centres)
+    keep = _one_per_voxel(points, voxel)
+    if len(keep) < 20:
+        return None
+    points, colors, centres = points[keep], colors[keep], centres[keep]
+    normals = _normals(points, voxel)
+    # face the camera each point was seen from (FPFH depends on the normals' sign)
+    flip = np.einsum("ij,ij->i", normals, centres - points) < 0
+    normals[flip] *= -1
+    return SurfaceModel(points, normals, colors.astype(np.float64) / 255.0)
+
+
+def region_model(sample: SurfaceSample, voxel: float) -> SurfaceModel | None:
+    """A region of the current frame as a :class:`SurfaceModel` in its camera frame."""
+    return build_model([(np.eye(4), sample)], voxel)
+
+
+def _normals(points: np.ndarray, voxel: float) -> np.ndarray:
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * voxel, max_nn=30))
+    return np.asarray(cloud.normals).copy()
+
+
+def _fpfh(model: SurfaceModel, voxel: float) -> np.ndarray:
+    """``(N, 33)`` FPFH descriptors of the model's points."""
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.points))
+    cloud.normals = o3d.utility.Vector3dVector(model.normals)
+    feature = o3d.pipelines.registration.compute_fpfh_feature(
+        cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
+    return np.asarray(feature.data).T.copy()
+
+
+COLOR_WEIGHT = 1.0  # weight of the neighbourhood colour (RGB in [0, 1]) against FPFH (histograms summing to 1)
+
+
+def _features(model: SurfaceModel, voxel: float) -> np.ndarray:
+    """``(N, 36)`` point descriptors: FPFH (shape) and the mean colour within 3 voxels. Shape
+    alone cannot tell the faces of a box apart; their colours mostly can."""
+    fpfh = _fpfh(model, voxel) / 100.0
+    tree = cKDTree(model.points)
+    neighbours = tree.sparse_distance_matrix(tree, 3 * voxel, output_type="coo_matrix")
+    from scipy.sparse import coo_matrix
+
+    weights = coo_matrix((np.ones(len(neighbours.data)), (neighbours.row, neighbours.col)),
+                         shape=(len(model.points), len(model.points))).tocsr()
+    weights.setdiag(1.0)
+    counts = np.asarray(weights.sum(axis=1)).ravel()
+    mean_color = (weights @ model.colors) / counts[:, None]
+    features = np.hstack([fpfh, COLOR_WEIGHT * mean_color])
+    features[~fpfh.any(axis=1)] = 0.0  # no shape descriptor: not used
+    return features
+
+
+def _kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched least-squares rotations and translations: ``source``, ``target`` ``(B, K, 3)``
+    -> ``R`` ``(B, 3, 3)``, ``t`` ``(B, 3)`` with ``target ~ R @ source + t``."""
+    source_mean, target_mean = source.mean(axis=1), target.mean(axis=1)
+    covariance = np.einsum("bki,bkj->bij", target - target_mean[:, None], source - source_mean[:, None])
+    u, _, vt = np.linalg.svd(covariance)
+    d = np.sign(np.linalg.det(u @ vt))
+    u[:, :, 2] *= d[:, None]
+    rotation = u @ vt
+    translation = target_mean - np.einsum("bij,bj->bi", rotation, source_mean)
+    return rotation, translation
+
+
+def _icp(region: SurfaceModel, model: SurfaceModel, tree: cKDTree, T: np.ndarray, voxel: float,
+         iterations: int = 15) -> np.ndarray:
+    """Point-to-plane ICP of ``region`` onto ``model`` from ``T`` (model <- region)."""
+    for iteration in range(iterations):
+        moved = transform_points(T, region.points)
+        radius = (4.0 if iteration < 5 else 2.0) * voxel
+        distance, nearest = tree.query(moved, distance_upper_bound=radius)
+        pairs = np.isfinite(distance)
+        if pairs.sum() < 10:
+            break
+        p, q, n = moved[pairs], model.points[nearest[pairs]], model.normals[nearest[pairs]]
+        # linearised: (p + w x p + t - q) . n = 0 for the small rotation w and translation t
+        a = np.hstack([np.cross(p, n), n])
+        b = -np.einsum("ij,ij->i", p - q, n)
+        step, *_ = np.linalg.lstsq(a, b, rcond=None)
+        angle = np.linalg.norm(step[:3])
+        rotation = np.eye(3) if angle < 1e-12 else rotation_about_axis(step[:3] / angle, angle)
+        T = make_transform(rotation, step[3:]) @ T
+        if angle < 1e-5 and np.linalg.norm(step[3:]) < 1e-5:
+            break
+    return T
+
+
+def _colored_icp(region: SurfaceModel, model: SurfaceModel, T: np.ndarray, voxel: float) -> np.ndarray:
+    """Open3D's coloured ICP (Park et al. 2017) from ``T``: geometry and colour together slide
+    a flat face into place, which point-to-plane ICP cannot."""
+    import open3d as o3d
+
+    registration = o3d.pipelines.registration
+    clouds = []
+    for surface in (region, model):
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(surface.points))
+        cloud.normals = o3d.utility.Vector3dVector(surface.normals)
+        cloud.colors = o3d.utility.Vector3dVector(surface.colors)
+        clouds.append(cloud)
+    for radius in (4 * voxel, 2 * voxel):
+        try:
+            result = registration.registration_colored_icp(
+                clouds[0], clouds[1], radius, T,
+                registration.TransformationEstimationForColoredICP(lambda_geometric=0.9),
+                registration.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=30))
+        except RuntimeError:  # no correspondences within the radius: keep the start
+            break
+        if result.fitness > 0:
+            T = np.asarray(result.transformation).copy()
+    return T
+
+
+def fitness(region: SurfaceModel, model_tree: cKDTree, T: np.ndarray, voxel: float) -> float:
+    """Share of the region's points within 1.5 voxels of the model under ``T``."""
+    distance, _ = model_tree.query(transform_points(T, region.points), distance_upper_bound=1.5 * voxel)
+    return float(np.isfinite(distance).mean())
+
+
+@dataclass
+class Alignment:
+    """A candidate alignment: ``T_model_region`` ``(4, 4)``, the share of the region on the
+    model surface (``fitness``) and the mean colour difference there (``color_residual``)."""
+
+    T_model_region: np.ndarray
+    fitness: float
+    color_residual: float
+
+
+def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng: np.random.Generator,
+                   iterations: int = 4000, hypotheses: int = 6, min_fitness: float = 0.3,
+                   max_candidates: int = 8) -> list[Alignment]:
+    """Candidate ``T_model_region`` alignments of ``region`` onto ``model``, best fit first.
+
+    Nearest neighbours in FPFH and neighbourhood colour give point pairs; RANSAC draws ``iterations`` triples from them
+    (triangles whose side lengths disagree by over 10% are skipped) and keeps the
+    ``hypotheses`` distinct alignments most pairs agree with. Each is also tried turned by 180 degrees about the
+    axes of the aligned region (its near-symmetries: features must tell them apart), then
+    refined by ICP. Returned: alignments with at least ``min_fitness`` of the region on the
+    model surface, at most ``max_candidates``, no two within 2 cm and 10 degrees, ordered by
+    their colour residual.
+    """
+    if len(region.points) < 20 or len(model.points) < 20:
+        return []
+    region_features, model_features = _features(region, voxel), _features(model, voxel)
+    valid_region = np.flatnonzero(region_features.any(axis=1))
+    valid_model = np.flatnonzero(model_features.any(axis=1))
+    if len(valid_region) < 3 or len(valid_model) < 3:
+        return []
+    model_index = cKDTree(model_features[valid_model])
+    _, nearest = model_index.query(region_features[valid_region])
+    source = region.points[valid_region]
+    target = model.points[valid_model[nearest]]
+
+    samples = rng.integers(0, len(source), size=(iterations, 3))
+    a, b = source[samples], target[samples]
+    edges_a = np.linalg.norm(a - np.roll(a, 1, axis=1), axis=2)
+    edges_b = np.linalg.norm(b - np.roll(b, 1, axis=1), axis=2)
+    similar = np.all(np.abs(edges_a - edges_b) <= 0.1 * np.maximum(edges_a, edges_b), axis=1)
+    similar &= np.all(edges_a > 2 * voxel, axis=1)
+    if not similar.any():
+        return []
+    rotations, translations = _kabsch(a[similar], b[similar])
+    moved = np.einsum("bij,kj->bki", rotations, source) + translations[:, None]
+    support = (np.linalg.norm(moved - target[None], axis=2) < 1.5 * voxel).sum(axis=1)
+    ranked = np.argsort(-support, kind="stable")
+    order: list[int] = []  # the best-supported distinct alignments
+    for index in ranked[:200]:
+        T = make_transform(rotations[index], translations[index])
+        if all(not _close(T, make_transform(rotations[k], translations[k]), 0.05, 20.0) for k in order):
+            order.append(int(index))
+        if len(order) == hypotheses:
+            break
+
+    tree = cKDTree(model.points)
+    model_turns = _symmetry_axes(model.points, model.normals)
+    candidates: list[tuple[float, np.ndarray]] = []
+    for index in order:
+        T = make_transform(rotations[index], translations[index])
+        aligned = transform_points(T, region.points)
+        aligned_normals = region.normals @ T[:3, :3].T
+        starts = [T] + [_half_turn(axis, centre) @ T
+                        for axis, centre in _symmetry_axes(aligned, aligned_normals) + model_turns]
+        for start in starts:
+            refined = _colored_icp(region, model, _icp(region, model, tree, start, voxel), voxel)
+            score = fitness(region, tree, refined, voxel)
+            if score >= min_fitness:
+                candidates.append((score, refined))
+    # best colour agreement first: shape fits a box several ways, its texture only one
+    scored = sorted(((color_residual(region, model, tree, T, voxel), -score, index, T)
+                     for index, (score, T) in enumerate(candidates)), key=lambda item: item[:3])
+    distinct: list[Alignment] = []
+    for residual, negative_fitness, _, T in scored:
+        if all(not _close(T, other.T_model_region) for other in distinct):
+            distinct.append(Alignment(T, -negative_fitness, residual))
+        if len(distinct) == max_candidates:
+            break
+    return distinct
+
+
+def color_residual(region: SurfaceModel, model: SurfaceModel, model_tree: cKDTree, T: np.ndarray,
+                   voxel: float) -> float:
+    """Mean absolute RGB difference (in [0, 1]) between the region's points on the model
+    surface under ``T`` and their nearest model points (1.0 when none is on it)."""
+    distance, nearest = model_tree.query(transform_points(T, region.points), distance_upper_bound=1.5 * voxel)
+    on = np.isfinite(distance)
+    if not on.any():
+        return 1.0
+    return float(np.abs(region.colors[on] - model.colors[nearest[on]]).mean())
+
+
+def _half_turn(axis: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """``(4, 4)`` rotation by 180 degrees about the line through ``centre`` along ``axis``."""
+    turn = make_transform(rotation_about_axis(axis, np.pi), np.zeros(3))
+    return make_transform(np.eye(3), centre) @ turn @ make_transform(np.eye(3), -centre)
+
+
+def _symmetry_axes(points: np.ndarray, normals: np.ndarray, faces: int = 2) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Lines ``(axis, centre)`` about which a surface may look the same turned by 180 degrees:
+    its principal axes through its centroid, and the normals of its ``faces`` largest flat
+    parts through their centroids (a box face turned about its normal fits itself)."""
+    centre = points.mean(axis=0)
+    _, principal = np.linalg.eigh(np.cov((points - centre).T))
+    lines = [(principal[:, k], centre) for k in range(3)]
+    remaining = np.ones(len(points), dtype=bool)
+    for _ in range(faces):
+        candidates = np.flatnonzero(remaining)
+        if len(candidates) < 20:
+            break
+        probes = candidates[:: max(1, len(candidates) // 100)]
+        agreement = normals[probes] @ normals[candidates].T > np.cos(np.radians(20))
+        best = probes[int(np.argmax(agreement.sum(axis=1)))]
+        members = candidates[normals[candidates] @ normals[best] > np.cos(np.radians(20))]
+        if len(members) < 20:
+            break
+        axis = normals[members].mean(axis=0)
+        lines.append((axis / np.linalg.norm(axis), points[members].mean(axis=0)))
+        remaining[candidates[normals[candidates] @ normals[best] > np.cos(np.radians(30))]] = False
+    return lines
+
+
+def _close(a: np.ndarray, b: np.ndarray, metres: float = 0.02, degrees: float = 10.0) -> bool:
+    difference = np.linalg.inv(a) @ b
+    cosine = np.clip((np.trace(difference[:3, :3]) - 1) / 2, -1, 1)
+    return np.linalg.norm(difference[:3, 3]) < metres and np.degrees(np.arccos(cosine)) < degrees
