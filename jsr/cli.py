@@ -395,7 +395,8 @@ def _print_metrics(metrics: dict) -> None:
     matches = objects.get("matches") or []
     if matches:
         table = Table(title="Objects")
-        for column in ("estimated", "true", "frames", "t RMSE cm", "t median cm", "R RMSE deg", "tracked share"):
+        for column in ("estimated", "true", "frames", "t RMSE cm", "t median cm", "R RMSE deg", "tracked share",
+                       "further maps", "share, all maps"):
             table.add_column(column, justify="right")
         for match in matches:
             table.add_row(
@@ -406,6 +407,8 @@ def _print_metrics(metrics: dict) -> None:
                 f"{match.get('translation_median_cm', float('nan')):.2f}",
                 f"{match.get('rotation_rmse_deg', float('nan')):.2f}",
                 f"{match.get('tracked_share', float('nan')):.2f}",
+                ", ".join(str(k) for k in match.get("further_maps", [])) or "-",
+                f"{match.get('tracked_share_all_maps', float('nan')):.2f}",
             )
         console.print(table)
     masks = metrics.get("masks")

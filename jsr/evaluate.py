@@ -56,6 +56,10 @@ VISIBLE_PIXEL_THRESHOLD = 2000
 """A true object counts as visible in a frame whose label image has more than this many of its pixels."""
 
 MIN_MATCH_FRAMES = 3
+# A map left out of the one-to-one matching that follows a matched true object this closely
+# (median over its frames) is a further map of that object (one object seen as several maps).
+EXTRA_MAP_MAX_CM = 3.0
+EXTRA_MAP_MAX_DEG = 3.0
 """An estimated object is matched to a true object only over at least this many common frames."""
 
 _TRUE_OBJECT_FILE = re.compile(r"^object_(\d+)\.txt$")
@@ -331,6 +335,31 @@ def match_objects(errors: Iterable[ObjectPoseError], min_frames: int = MIN_MATCH
     return matches
 
 
+def pool_extra_maps(errors: Iterable[ObjectPoseError], matches: list[ObjectPoseError],
+                    min_frames: int = MIN_MATCH_FRAMES) -> dict[int, list[ObjectPoseError]]:
+    """``true id -> [errors of its further maps]``: estimated maps not in ``matches`` whose
+    median error against a matched true object is at most ``EXTRA_MAP_MAX_CM`` and
+    ``EXTRA_MAP_MAX_DEG`` over at least ``min_frames`` frames (the closest such object). A
+    tool that splits one object into several maps then gets the tracked frames of all of
+    them, and their masks, counted for that object."""
+    matched_estimated = {match.estimated_id for match in matches}
+    matched_true = {match.true_id for match in matches}
+    best: dict[int, ObjectPoseError] = {}
+    for error in errors:
+        if (error.estimated_id in matched_estimated or error.true_id not in matched_true
+                or error.frames < min_frames or error.translation_median_cm > EXTRA_MAP_MAX_CM
+                or error.rotation_median_deg > EXTRA_MAP_MAX_DEG):
+            continue
+        current = best.get(error.estimated_id)
+        if current is None or (error.translation_median_cm, error.true_id) < (current.translation_median_cm,
+                                                                             current.true_id):
+            best[error.estimated_id] = error
+    pooled: dict[int, list[ObjectPoseError]] = {}
+    for estimated_id in sorted(best):
+        pooled.setdefault(best[estimated_id].true_id, []).append(best[estimated_id])
+    return pooled
+
+
 def _lookup(reference: np.ndarray, other: np.ndarray, max_difference: float) -> np.ndarray:
     """For each reference timestamp, the index of its associated ``other`` timestamp, or -1."""
     index = np.full(len(reference), -1, dtype=int)
@@ -575,23 +604,35 @@ def _objects_section(
     true = _read_true_objects(sequence_dir)
     if not true:
         return None, []
-    matches = match_objects(_object_errors(estimated, true, cameras, max_time_difference))
+    errors = _object_errors(estimated, true, cameras, max_time_difference)
+    matches = match_objects(errors)
+    extra = pool_extra_maps(errors, matches)
     visible, visible_how = _visible_frames(true, colour, labels, max_time_difference, min_visible_pixels)
     matched_rows = []
     for match in matches:
         row = match.as_dict()
         visible_timestamps = visible[match.true_id]
-        estimate_timestamps = estimated[match.estimated_id][0]
-        tracked = int(np.count_nonzero(_lookup(visible_timestamps, estimate_timestamps, max_time_difference) >= 0))
+
+        def tracked_in(estimated_ids):
+            tracked = np.zeros(len(visible_timestamps), dtype=bool)
+            for estimated_id in estimated_ids:
+                tracked |= _lookup(visible_timestamps, estimated[estimated_id][0], max_time_difference) >= 0
+            return int(np.count_nonzero(tracked))
+
+        further = [error.estimated_id for error in extra.get(match.true_id, [])]
+        tracked = tracked_in([match.estimated_id])
         row["visible_frames"] = len(visible_timestamps)
         row["tracked_frames"] = tracked
         row["tracked_share"] = _ratio(tracked, len(visible_timestamps))
+        row["further_maps"] = further
+        row["tracked_share_all_maps"] = _ratio(tracked_in([match.estimated_id, *further]), len(visible_timestamps))
         matched_rows.append(row)
         logger.info(
             "object %d -> true object %d: %d frames, %.2f cm / %.2f deg median",
             match.estimated_id, match.true_id, match.frames, match.translation_median_cm, match.rotation_median_deg,
         )
-    matched_estimated = {match.estimated_id for match in matches}
+    pooled = [error for errors_of in extra.values() for error in errors_of]
+    matched_estimated = {match.estimated_id for match in matches} | {error.estimated_id for error in pooled}
     matched_true = {match.true_id for match in matches}
     section = {
         "estimated": [{"id": key, "frames": len(value[0])} for key, value in estimated.items()],
@@ -600,10 +641,11 @@ def _objects_section(
         ],
         "visibility": visible_how,
         "matches": matched_rows,
+        "further_maps": [error.as_dict() for error in pooled],
         "unmatched_estimated": [key for key in estimated if key not in matched_estimated],
         "unmatched_true": [key for key in true if key not in matched_true],
     }
-    return section, matches
+    return section, matches + pooled
 
 
 def _merged_ids(results_dir: Path) -> dict[int, int]:

@@ -25,7 +25,7 @@ from jsr.evaluate import (
     write_metrics,
 )
 from jsr.geometry import invert_transform, make_transform, rotation_about_axis
-from jsr.io.trajectory import write_tum_trajectory
+from jsr.io.trajectory import read_tum_trajectory, write_tum_trajectory
 
 
 def smooth_trajectory(rng: np.random.Generator, count: int) -> np.ndarray:
@@ -408,3 +408,23 @@ def test_evaluate_run_reports_missing_ground_truth_and_wrong_sequence(tmp_path):
         evaluate_run(results, sequence)
     with pytest.raises(InputError, match="does not exist"):
         evaluate_run(tmp_path / "nowhere", sequence)
+
+
+def test_further_maps_of_one_object_are_pooled(tmp_path):
+    """A second map that follows the true object in other frames (one object seen as two
+    maps) counts for that object; a map that follows nothing stays unmatched."""
+    sequence, results, offset = make_run(tmp_path)
+    rng = np.random.default_rng(3)
+    cameras = read_tum_trajectory(sequence / "groundtruth.txt")[1]
+    timestamps, objects = read_tum_trajectory(sequence / "objects" / "object_1.txt")
+    world = invert_transform(cameras[0])
+    other_offset = random_transform(rng, 0.2)  # the second map has its own object frame
+    write_tum_trajectory(results / "objects" / "object_3" / "trajectory.tum", timestamps[10:15],
+                         world @ objects[10:15] @ other_offset)
+    objects_section = evaluate_run(results, sequence)["objects"]
+    (match,) = objects_section["matches"]
+    assert match["estimated_id"] == 1 and match["further_maps"] == [3]
+    assert match["tracked_share"] == pytest.approx(10 / 15)
+    assert match["tracked_share_all_maps"] == pytest.approx(15 / 15)
+    assert objects_section["unmatched_estimated"] == [2]
+    assert [entry["estimated_id"] for entry in objects_section["further_maps"]] == [3]
