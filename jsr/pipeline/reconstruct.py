@@ -304,7 +304,7 @@ class Reconstructor:
             self._update_static(frame, measurements, report, static, assignment)
             self._retire_static_landmarks(static, assignment)
             if objects_on:
-                self._retire_vacated_landmarks(frame, report.T_w_c)
+                self._retire_vacated_landmarks(frame, report.T_w_c, static)
         for outcome in tracked_objects:
             if self._update_object(frame, measurements, report, outcome, assignment):
                 self._merge_registered_maps(outcome.object_map, frame.index, assignment, report)
@@ -1230,11 +1230,11 @@ class Reconstructor:
             self.static_map.points.retire(retired)
             logger.debug("static map: %d landmarks retired", len(retired))
 
-    def _retire_vacated_landmarks(self, frame: Frame, T_w_c: np.ndarray) -> None:
+    def _retire_vacated_landmarks(self, frame: Frame, T_w_c: np.ndarray, static: StaticRegistration) -> None:
         """Static-map hygiene, geometric: a landmark of the recent keyframes that projects into
         this frame where the measured surface lies clearly *behind* it has lost its surface (an
         object it was on moved away). Seen through in ``objects.retire_after_vacated`` frames in
-        a row, it is retired."""
+        a row, and not a registration inlier meanwhile, it is retired."""
         config = self.config.objects
         if config.retire_after_vacated <= 0 or not self.static_map.keyframes:
             return
@@ -1250,6 +1250,12 @@ class Reconstructor:
         # the free-space test's margins: only a surface clearly gone counts, not a depth edge
         margin = np.maximum(config.free_space_margin, config.free_space_sigmas * noise.sigma_z_coefficient * z**2)
         through = seen & (measured > z + margin)
+        if not static.bridged:
+            # a landmark registered as an inlier in this frame is where its feature is: a
+            # "seen through" reading there is a depth edge or colour/depth misregistration
+            result = static.result
+            inliers = np.concatenate([result.inliers_point3d, result.inliers_point2d]).astype(bool)
+            through &= ~np.isin(ids, static.matched.point_landmarks[inliers])
         counts = points.seen_through
         counts[ids[seen & ~through]] = 0
         counts[ids[through]] += 1
