@@ -427,3 +427,25 @@ def test_object_surfaces_follow_the_object(jump_sequence):
     object_points = transform_points(np.linalg.inv(poses[frame_index]) @ T_gtworld_cam0 @ T_w_o_map, model.points)
     inside = np.linalg.norm(object_points, axis=1) < 0.5 * np.linalg.norm(size) + 0.02
     assert inside.mean() > 0.95
+
+
+def test_vacated_landmarks_are_retired_only_once_something_moved(jump_sequence):
+    """objects.retire_after_vacated: static landmarks seen through (the measured surface far
+    behind them) in that many frames in a row are retired, but only once an object was
+    detected; before that, a surface seen through is a depth artefact."""
+    result = run(jump_sequence, ["objects.retire_after_vacated=2"], sequence=open_sequence(jump_sequence, max_frames=4))
+    reconstructor = result.reconstructor
+    assert not reconstructor.object_maps
+    T_w_c = result.reports[-1].T_w_c
+    far = SimpleNamespace(depth=np.full((HEIGHT, WIDTH), 20.0, dtype=np.float32))  # everything seen through
+    not_matched = SimpleNamespace(bridged=True)  # no registration inliers to spare
+    active_before = reconstructor.static_map.points.active.copy()
+    for _ in range(3):
+        reconstructor._retire_vacated_landmarks(far, T_w_c, not_matched)
+    np.testing.assert_array_equal(reconstructor.static_map.points.active, active_before)
+    reconstructor._next_object_id = 2  # as if object 1 had been detected
+    reconstructor._retire_vacated_landmarks(far, T_w_c, not_matched)
+    np.testing.assert_array_equal(reconstructor.static_map.points.active, active_before)  # once is not enough
+    reconstructor._retire_vacated_landmarks(far, T_w_c, not_matched)
+    retired = active_before & ~reconstructor.static_map.points.active
+    assert retired.sum() > 50
