@@ -119,20 +119,25 @@ def match_frame_guided(
     intrinsics,
     config: Config,
     focal_length: float | None = None,
+    point_measurements: np.ndarray | None = None,
+    radius_px: float | None = None,
 ) -> MatchedFrame:
     """Prediction-based matching: every landmark of ``landmark_ids`` is projected with the
     predicted ``T_map_cam`` and matched with the frame keypoints near its projection
-    (``matching.guided_radius_px``); planes are matched under the same pose."""
+    (``radius_px``, default ``matching.guided_radius_px``); planes are matched under the same
+    pose. ``point_measurements`` restricts the frame's points (e.g. to one region)."""
     points = measurements.points
     landmark_ids = np.asarray(landmark_ids, dtype=np.int64)
+    candidates = np.arange(len(points)) if point_measurements is None else np.asarray(point_measurements, np.int64)
+    radius = config.matching.guided_radius_px if radius_px is None else radius_px
     pairs = np.zeros((0, 2), dtype=np.int64)
-    if len(points) and len(landmark_ids):
-        found = guided_match(points.pixels, points.descriptors, target.points.positions[landmark_ids],
-                             target.points.descriptors[landmark_ids], T_map_cam_predicted, intrinsics,
-                             config.matching.guided_radius_px, config.matching.ratio_test,
+    if len(candidates) and len(landmark_ids):
+        found = guided_match(points.pixels[candidates], points.descriptors[candidates],
+                             target.points.positions[landmark_ids], target.points.descriptors[landmark_ids],
+                             T_map_cam_predicted, intrinsics, radius, config.matching.ratio_test,
                              config.matching.max_descriptor_distance)
         if len(found):
-            pairs = np.column_stack([found[:, 0], landmark_ids[found[:, 1]]]).astype(np.int64)
+            pairs = np.column_stack([candidates[found[:, 0]], landmark_ids[found[:, 1]]]).astype(np.int64)
     plane_pairs = predicted_plane_pairs(measurements, target, T_map_cam_predicted, config)
     return matched_frame_from_pairs(measurements, target, pairs, plane_pairs, focal_length)
 

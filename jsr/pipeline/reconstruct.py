@@ -35,9 +35,8 @@ from jsr.pipeline.association import (
     MatchedFrame,
     inlier_landmarks,
     inlier_plane_landmarks,
+    match_frame_guided,
     match_frame_to_map,
-    matched_frame_from_pairs,
-    predicted_plane_pairs,
     sample_colors,
 )
 from jsr.pipeline.classify import ObjectRegistration, classify_measurements, segment_of_planes
@@ -93,6 +92,18 @@ def fill_unlabelled(ownership: np.ndarray, unlabelled: np.ndarray, radius: int) 
         count = cv2.boxFilter(mine, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
         filled[unlabelled & (count > 0.5 * labelled_count)] = object_id
     return filled
+
+
+def features_in_segments(measurements: FrameMeasurements, segment_ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """``(N,)`` bool over the frame's points and ``(P,)`` bool over its planes: those lying in
+    one of the segments ``segment_ids``."""
+    segments = measurements.segments
+    members = np.zeros(len(segments), dtype=bool)
+    members[segment_ids] = True
+    point_segment = segments.segment_of_points(len(measurements.points))
+    plane_segment = segment_of_planes(segments, len(measurements.planes))
+    return ((point_segment >= 0) & members[np.maximum(point_segment, 0)],
+            (plane_segment >= 0) & members[np.maximum(plane_segment, 0)])
 
 
 @dataclass
@@ -225,7 +236,7 @@ class Reconstructor:
     def process(self, frame: Frame) -> FrameReport:
         """Process one frame; never raises for a frame that simply cannot be registered."""
         started = time.perf_counter()
-        measurements = self.frontend.process(frame, self._detail_boxes(frame))
+        measurements = self.frontend.process(frame, self._detail_boxes())
         # Bundle adjustments started after earlier keyframes ran while the front-end worked;
         # they are applied here, always at this point, so runs stay reproducible.
         for map_ in self.maps:
@@ -262,7 +273,7 @@ class Reconstructor:
         self.reports.append(report)
         return report
 
-    def _detail_boxes(self, frame: Frame) -> list[tuple[int, int, int, int]]:
+    def _detail_boxes(self) -> list[tuple[int, int, int, int]]:
         """Pixel boxes ``(x0, y0, x1, y1)`` of the objects in the previous frame's ownership
         image, grown by ``features.object_detail_margin`` of their size on every side: where
         the front-end adds the finest-scale keypoints (small objects carry few otherwise)."""
@@ -270,7 +281,7 @@ class Reconstructor:
         mask = self._previous_mask
         if not (self.config.objects.enabled and features.object_detail) or mask is None or not mask.any():
             return []
-        height, width = frame.depth.shape
+        height, width = mask.shape
         boxes = []
         for object_id in np.unique(mask[mask > 0]):
             rows, cols = np.nonzero(mask == object_id)
@@ -592,10 +603,7 @@ class Reconstructor:
         candidates &= segment_owner == 0
         # A segment whose surface lies where the static keyframes saw one has not moved, even if
         # the static map holds few landmarks on it (a table top the object stands on) ...
-        violations, consistent = self._free_space(frame, measurements)
-        sampled = violations + consistent
-        min_samples = self._free_space_min_samples()
-        seen_static = (sampled >= min_samples) & (consistent >= 0.5 * sampled)
+        seen_static = self._seen_before(*self._free_space(frame, measurements))
         # ... unless the static landmarks matched in it are (nearly) all outliers: they moved
         # with it, and the surface the keyframes saw there was the object itself before it moved.
         min_features = self.config.detection.min_segment_features
@@ -870,8 +878,14 @@ class Reconstructor:
         if not (self.config.objects.free_space_detection and self.depth_views):
             return False
         violations, consistent = self._free_space(frame, measurements)
-        sampled = int(violations[group].sum() + consistent[group].sum())
-        return sampled >= self._free_space_min_samples() and consistent[group].sum() >= 0.5 * sampled
+        return bool(self._seen_before(violations[group].sum(), consistent[group].sum()))
+
+    def _seen_before(self, violations, consistent):
+        """Free-space verdict on sampled pixels (per segment as ``(S,)`` arrays, or summed over
+        a region): enough of them could be tested and at least half lie where the latest static
+        keyframes saw a surface."""
+        sampled = violations + consistent
+        return (sampled >= self._free_space_min_samples()) & (consistent >= 0.5 * sampled)
 
     def _depth_at_projections(self, camera_points: np.ndarray, depth: np.ndarray
                               ) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray, np.ndarray]:
@@ -963,7 +977,6 @@ class Reconstructor:
         region = region_model(sample, config.shape_voxel)
         if region is None:
             return False
-        points = measurements.points
         best = None
         for object_map in lost:
             model = self._surface_model(object_map)
@@ -976,18 +989,14 @@ class Reconstructor:
                          len(model.points), len(alignments))
             for alignment in alignments[:SHAPE_CANDIDATES]:
                 T_o_c = alignment.T_model_region
-                found = guided_match(points.pixels[group_points], points.descriptors[group_points],
-                                     object_map.points.positions[landmarks], object_map.points.descriptors[landmarks],
-                                     T_o_c, self.intrinsics, config.shape_radius_px, self.config.matching.ratio_test,
-                                     self.config.matching.max_descriptor_distance)
+                matched = match_frame_guided(measurements, object_map, landmarks, T_o_c, self.intrinsics, self.config,
+                                             self._focal_length, point_measurements=group_points,
+                                             radius_px=config.shape_radius_px)
                 logger.debug("frame %d: object %d, surface alignment with fitness %.2f, colour residual %.3f: "
                              "%d landmark matches", measurements.frame_index, object_map.object_id, alignment.fitness,
-                             alignment.color_residual, len(found))
-                if len(found) < self.config.ransac.min_matches:
+                             alignment.color_residual, len(matched.point_measurements))
+                if len(matched.point_measurements) < self.config.ransac.min_matches:
                     continue
-                pairs = np.column_stack([group_points[found[:, 0]], landmarks[found[:, 1]]]).astype(np.int64)
-                plane_pairs = predicted_plane_pairs(measurements, object_map, T_o_c, self.config)
-                matched = matched_frame_from_pairs(measurements, object_map, pairs, plane_pairs, self._focal_length)
                 result = register(matched.correspondences, self.config.ransac, self.config.noise, self.objects_rng)
                 logger.debug("frame %d: object %d under that alignment: %d of %d inliers", measurements.frame_index,
                              object_map.object_id, result.num_inliers, result.num_matches)
@@ -1013,15 +1022,10 @@ class Reconstructor:
         is tracked in this frame by ``result``."""
         object_id = outcome.object_map.object_id
         outcome.frame_matched, outcome.frame_result = matched, result
-        segment_members = np.zeros(len(measurements.segments), dtype=bool)
-        segment_members[group] = True
         assignment.segment_owner[group] = object_id
-        point_segment = measurements.segments.segment_of_points(len(measurements.points))
-        in_group = (point_segment >= 0) & segment_members[np.maximum(point_segment, 0)]
-        assignment.point_owner[in_group & (assignment.point_owner == 0)] = object_id
-        plane_segment = segment_of_planes(measurements.segments, len(measurements.planes))
-        plane_in_group = (plane_segment >= 0) & segment_members[np.maximum(plane_segment, 0)]
-        assignment.plane_owner[plane_in_group & (assignment.plane_owner == 0)] = object_id
+        points_in, planes_in = features_in_segments(measurements, group)
+        assignment.point_owner[points_in & (assignment.point_owner == 0)] = object_id
+        assignment.plane_owner[planes_in & (assignment.plane_owner == 0)] = object_id
 
     def _remember_surfaces(self, frame: Frame, ownership: np.ndarray) -> None:
         """Keep a surface sample of every object that got a keyframe (or started) in this frame."""
@@ -1062,15 +1066,10 @@ class Reconstructor:
     def _start_object(self, frame: Frame, measurements: FrameMeasurements, segment_ids: list[int],
                       T_w_c: np.ndarray, assignment: FrameAssignment) -> ObjectMap | None:
         """A new object map from the given segments; its frame is this camera frame."""
-        segments, points, planes = measurements.segments, measurements.points, measurements.planes
-        members = np.zeros(len(segments), dtype=bool)
-        members[segment_ids] = True
-        point_segment = segments.segment_of_points(len(points))
-        point_ids = np.flatnonzero((point_segment >= 0) & members[np.maximum(point_segment, 0)]
-                                   & (assignment.point_owner == 0) & points.has_depth)
-        plane_segment = segment_of_planes(segments, len(planes))
-        plane_ids = np.flatnonzero((plane_segment >= 0) & members[np.maximum(plane_segment, 0)]
-                                   & (assignment.plane_owner == 0))
+        points, planes = measurements.points, measurements.planes
+        points_in, planes_in = features_in_segments(measurements, segment_ids)
+        point_ids = np.flatnonzero(points_in & (assignment.point_owner == 0) & points.has_depth)
+        plane_ids = np.flatnonzero(planes_in & (assignment.plane_owner == 0))
         if len(point_ids) < min(self.config.detection.min_object_points, self.config.ransac.min_matches):
             return None
         if self._next_object_id > MAX_OBJECT_ID:

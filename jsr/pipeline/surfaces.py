@@ -119,6 +119,7 @@ def _fpfh(model: SurfaceModel, voxel: float) -> np.ndarray:
     return np.asarray(feature.data).T.copy()
 
 
+SUPPORT_CHUNK = 256  # RANSAC hypotheses scored together (bounds the memory of the scoring)
 COLOR_WEIGHT = 1.0  # weight of the neighbourhood colour (RGB in [0, 1]) against FPFH (histograms summing to 1)
 
 
@@ -127,11 +128,8 @@ def _features(model: SurfaceModel, voxel: float) -> np.ndarray:
     alone cannot tell the faces of a box apart; their colours mostly can."""
     fpfh = _fpfh(model, voxel) / 100.0
     tree = cKDTree(model.points)
-    neighbours = tree.sparse_distance_matrix(tree, 3 * voxel, output_type="coo_matrix")
-    from scipy.sparse import coo_matrix
-
-    weights = coo_matrix((np.ones(len(neighbours.data)), (neighbours.row, neighbours.col)),
-                         shape=(len(model.points), len(model.points))).tocsr()
+    weights = tree.sparse_distance_matrix(tree, 3 * voxel, output_type="coo_matrix").tocsr()
+    weights.data[:] = 1.0  # neighbours count equally, whatever their distance
     weights.setdiag(1.0)
     counts = np.asarray(weights.sum(axis=1)).ravel()
     mean_color = (weights @ model.colors) / counts[:, None]
@@ -251,8 +249,11 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
     if not similar.any():
         return []
     rotations, translations = _kabsch(a[similar], b[similar])
-    moved = np.einsum("bij,kj->bki", rotations, source) + translations[:, None]
-    support = (np.linalg.norm(moved - target[None], axis=2) < 1.5 * voxel).sum(axis=1)
+    support = np.zeros(len(rotations), dtype=np.int64)
+    for start in range(0, len(rotations), SUPPORT_CHUNK):  # (chunk, K, 3) at a time, not (B, K, 3)
+        chunk = slice(start, start + SUPPORT_CHUNK)
+        moved = np.einsum("bij,kj->bki", rotations[chunk], source) + translations[chunk, None]
+        support[chunk] = (np.linalg.norm(moved - target[None], axis=2) < 1.5 * voxel).sum(axis=1)
     ranked = np.argsort(-support, kind="stable")
     order: list[int] = []  # the best-supported distinct alignments
     for index in ranked[:200]:
