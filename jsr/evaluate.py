@@ -56,11 +56,12 @@ VISIBLE_PIXEL_THRESHOLD = 2000
 """A true object counts as visible in a frame whose label image has more than this many of its pixels."""
 
 MIN_MATCH_FRAMES = 3
-# A map left out of the one-to-one matching that follows a matched true object this closely
-# (median over its frames) is a further map of that object (one object seen as several maps).
+"""An estimated object is matched to a true object only over at least this many common frames."""
+
 EXTRA_MAP_MAX_CM = 3.0
 EXTRA_MAP_MAX_DEG = 3.0
-"""An estimated object is matched to a true object only over at least this many common frames."""
+"""A map left out of the one-to-one matching that follows a matched true object this closely
+(median over its frames) is a further map of that object (one object seen as several maps)."""
 
 _TRUE_OBJECT_FILE = re.compile(r"^object_(\d+)\.txt$")
 _ESTIMATED_OBJECT_FOLDER = re.compile(r"^object_(\d+)$")
@@ -591,6 +592,15 @@ def _visible_frames(
     return {true_id: np.asarray(times, dtype=float) for true_id, times in visible.items()}, how
 
 
+def _frames_tracked(visible_timestamps: np.ndarray, map_timestamps: list[np.ndarray],
+                    max_time_difference: float) -> int:
+    """How many of the ``visible_timestamps`` some map (its trajectory ``map_timestamps``) tracked."""
+    tracked = np.zeros(len(visible_timestamps), dtype=bool)
+    for timestamps in map_timestamps:
+        tracked |= _lookup(visible_timestamps, timestamps, max_time_difference) >= 0
+    return int(np.count_nonzero(tracked))
+
+
 def _objects_section(
     results_dir: Path,
     sequence_dir: Path,
@@ -612,20 +622,15 @@ def _objects_section(
     for match in matches:
         row = match.as_dict()
         visible_timestamps = visible[match.true_id]
-
-        def tracked_in(estimated_ids):
-            tracked = np.zeros(len(visible_timestamps), dtype=bool)
-            for estimated_id in estimated_ids:
-                tracked |= _lookup(visible_timestamps, estimated[estimated_id][0], max_time_difference) >= 0
-            return int(np.count_nonzero(tracked))
-
         further = [error.estimated_id for error in extra.get(match.true_id, [])]
-        tracked = tracked_in([match.estimated_id])
+        tracked = _frames_tracked(visible_timestamps, [estimated[match.estimated_id][0]], max_time_difference)
         row["visible_frames"] = len(visible_timestamps)
         row["tracked_frames"] = tracked
         row["tracked_share"] = _ratio(tracked, len(visible_timestamps))
         row["further_maps"] = further
-        row["tracked_share_all_maps"] = _ratio(tracked_in([match.estimated_id, *further]), len(visible_timestamps))
+        all_maps = [estimated[k][0] for k in (match.estimated_id, *further)]
+        row["tracked_share_all_maps"] = _ratio(_frames_tracked(visible_timestamps, all_maps, max_time_difference),
+                                               len(visible_timestamps))
         matched_rows.append(row)
         logger.info(
             "object %d -> true object %d: %d frames, %.2f cm / %.2f deg median",

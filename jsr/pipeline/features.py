@@ -29,6 +29,7 @@ The 3D point back-projects the undistorted keypoint (when the camera has distort
 
 from __future__ import annotations
 
+import itertools
 import logging
 
 import cv2
@@ -124,18 +125,15 @@ def join_boxes(boxes: list[tuple[int, int, int, int]]) -> list[tuple[int, int, i
     """Boxes ``(x0, y0, x1, y1)`` with every overlapping pair replaced by its union, in a
     deterministic order."""
     joined = [tuple(int(v) for v in box) for box in boxes if box[2] > box[0] and box[3] > box[1]]
-    changed = True
-    while changed:
-        changed = False
-        for i in range(len(joined)):
-            for j in range(i + 1, len(joined)):
-                a, b = joined[i], joined[j]
-                if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
-                    joined[i] = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
-                    del joined[j]
-                    changed = True
-                    break
-            if changed:
+    merged = True
+    while merged:  # until no two boxes overlap
+        merged = False
+        for i, j in itertools.combinations(range(len(joined)), 2):
+            a, b = joined[i], joined[j]
+            if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                joined[i] = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
+                del joined[j]
+                merged = True
                 break
     return sorted(joined)
 

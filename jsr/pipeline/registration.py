@@ -22,8 +22,9 @@ depth test while its pixel agrees. Such a 3D match, with a depth error below ``k
 stays an inlier but constrains the pose like a 2D-3D match: through its reprojection only.
 Nearer matches, whose 1 cm threshold already leaves a wide margin over the noise, keep the
 strict inlier test. With the fallback on, the MSAC cost of every 3D pair weighs its pixel and
-its depth agreement half each (a pair consistent in both beats one consistent in its pixel). Measured on bonn_crowd200 (200 frames, 3 seeds): camera ATE 9.6 cm without,
-4.5 cm with; redkitchen300 (300 frames, 5 seeds): 2.46 cm without, 2.68 cm with.
+its depth agreement half each (a pair consistent in both beats one consistent in its pixel).
+Measured on bonn_crowd200 (200 frames, 3 seeds): camera ATE 9.6 cm without, 4.5 cm with;
+redkitchen300 (300 frames, 5 seeds): 2.46 cm without, 2.68 cm with.
 
 Counting rule. Every correspondence counts as one match, a plane pair included (a plane is
 one measurement of the frame even though it summarises many pixels), so
