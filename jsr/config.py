@@ -156,7 +156,11 @@ class ObjectsConfig:
     extent_share: float = 0.5
     retire_object_matches: bool = True
     retire_after_outliers: int = 0
-    retire_after_vacated: int = 0
+    retire_after_vacated: int = 3
+    vacated_cluster_size: int = 5
+    vacated_cluster_radius: float = 0.15
+    vacated_window_px: int = 10
+    grow_keyframe_ratio: float = 1.0
     reidentify: bool = True
     shape_reidentify: bool = False
     shape_voxel: float = 0.01
@@ -286,6 +290,10 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "detection.min_object_points": (lambda v: v >= 3, "at least 3"),
     "objects.retire_after_outliers": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.retire_after_vacated": (lambda v: v >= 0, "at least 0 (0: never)"),
+    "objects.vacated_cluster_size": (lambda v: v >= 0, "at least 0 (0: no cluster needed)"),
+    "objects.vacated_cluster_radius": (lambda v: v > 0, "positive"),
+    "objects.grow_keyframe_ratio": (lambda v: v >= 0, "at least 0 (0: keyframes by view change only)"),
+    "objects.vacated_window_px": (lambda v: v >= 0, "at least 0 (0: the projected pixel alone)"),
     "objects.free_space_margin": (lambda v: v > 0, "positive"),
     "objects.extent_margin": (lambda v: v >= 0, "at least 0"),
     "detection.free_space_veto_motion": (lambda v: v >= 0, "at least 0 (0: no veto)"),

@@ -449,3 +449,84 @@ def test_vacated_landmarks_are_retired_only_once_something_moved(jump_sequence):
     reconstructor._retire_vacated_landmarks(far, T_w_c, not_matched)
     retired = active_before & ~reconstructor.static_map.points.active
     assert retired.sum() > 50
+
+
+def _recent_landmark_pixels(reconstructor, T_w_c):
+    """Ids, rounded pixels ``(N, 2)`` and depths ``(N,)`` of the static landmarks the vacated
+    test looks at, seen from ``T_w_c``."""
+    points = reconstructor.static_map.points
+    ids = reconstructor.static_map.recent_point_landmarks(reconstructor.config.matching.recent_keyframes)
+    camera = (points.positions[ids] - T_w_c[:3, 3]) @ T_w_c[:3, :3]
+    (u, v), inside, _ = reconstructor._depth_at_projections(camera, np.zeros((HEIGHT, WIDTH)))
+    return ids[inside], np.stack([u[inside], v[inside]], axis=1), camera[inside, 2]
+
+
+@pytest.mark.parametrize("window_px", [0, 5])
+def test_vacated_retirement_spares_a_surface_beside_the_pixel(jump_sequence, window_px):
+    """objects.vacated_window_px: a landmark whose surface is measured one pixel beside its
+    projection (a depth edge, a colour/depth misregistration) is not taken for vacated."""
+    overrides = ["objects.retire_after_vacated=2", f"objects.vacated_window_px={window_px}"]
+    result = run(jump_sequence, overrides, sequence=open_sequence(jump_sequence, max_frames=4))
+    reconstructor = result.reconstructor
+    reconstructor._next_object_id = 2  # as if object 1 had been detected
+    T_w_c = result.reports[-1].T_w_c
+    ids, pixels, depths = _recent_landmark_pixels(reconstructor, T_w_c)
+    edge = np.full((HEIGHT, WIDTH), 20.0, dtype=np.float32)
+    beside = np.clip(pixels[:, 0] + 1, 0, WIDTH - 1)
+    edge[pixels[:, 1], beside] = depths
+    edge[pixels[:, 1], pixels[:, 0]] = 20.0  # the pixel itself is seen through
+    frame = SimpleNamespace(depth=edge)
+    active_before = reconstructor.static_map.points.active.copy()
+    for _ in range(2):
+        reconstructor._retire_vacated_landmarks(frame, T_w_c, SimpleNamespace(bridged=True))
+    retired = active_before & ~reconstructor.static_map.points.active
+    if window_px:
+        assert retired.sum() == 0
+    else:
+        assert retired.sum() > 0.5 * len(ids)
+
+
+@pytest.mark.parametrize("cluster_size", [0, 5])
+def test_vacated_retirement_needs_an_area_seen_through(jump_sequence, cluster_size):
+    """objects.vacated_cluster_size: one landmark seen through on its own (a depth artefact)
+    stays; the place an object left is many landmarks seen through together."""
+    overrides = ["objects.retire_after_vacated=2", f"objects.vacated_cluster_size={cluster_size}",
+                 "objects.vacated_window_px=0"]  # the cluster condition alone
+    sequence = open_sequence(jump_sequence, max_frames=4)
+    result = run(jump_sequence, overrides, sequence=sequence)
+    reconstructor = result.reconstructor
+    reconstructor._next_object_id = 2
+    T_w_c = result.reports[-1].T_w_c
+    ids, pixels, _ = _recent_landmark_pixels(reconstructor, T_w_c)
+    # the landmark farthest in the image from any other: a hole around it holds it alone
+    gaps = np.linalg.norm(pixels[:, None, :] - pixels[None, :, :], axis=2) + np.eye(len(ids)) * 1e9
+    alone = int(np.argmax(gaps.min(axis=1)))
+    assert gaps[alone].min() > 4
+    depth = list(sequence)[-1].depth.copy()
+    u, v = pixels[alone]
+    depth[max(v - 2, 0):v + 3, max(u - 2, 0):u + 3] = 20.0
+    frame = SimpleNamespace(depth=depth)
+    for _ in range(2):
+        reconstructor._retire_vacated_landmarks(frame, T_w_c, SimpleNamespace(bridged=True))
+    assert reconstructor.static_map.points.active[ids[alone]] == (cluster_size > 0)
+
+
+def test_young_object_map_takes_in_the_rest_of_its_object():
+    """objects.grow_keyframe_ratio: a frame holding at least that many times the map's
+    landmarks in new 3D measurements of the object makes a keyframe, whatever the view."""
+    config = load_config(None)
+    owner = SimpleNamespace(config=config)
+    object_map = SimpleNamespace(points=SimpleNamespace(active=np.ones(26, dtype=bool)))
+    points = SimpleNamespace(has_depth=np.ones(200, dtype=bool))
+    own = np.arange(100)
+    landmark_of = np.full(200, -1)
+    landmark_of[:20] = np.arange(20)  # 20 matched, 80 new
+    assert Reconstructor._map_would_grow(owner, object_map, points, own, landmark_of)
+    landmark_of[:80] = np.arange(80)  # 20 new: fewer than the map's 26 landmarks
+    assert not Reconstructor._map_would_grow(owner, object_map, points, own, landmark_of)
+    points.has_depth[:] = False  # 2D measurements make no landmarks
+    landmark_of[:] = -1
+    assert not Reconstructor._map_would_grow(owner, object_map, points, own, landmark_of)
+    owner.config = load_config(None, ["objects.grow_keyframe_ratio=0"])
+    points.has_depth[:] = True
+    assert not Reconstructor._map_would_grow(owner, object_map, points, own, landmark_of)

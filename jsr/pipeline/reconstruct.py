@@ -20,7 +20,9 @@ import logging
 import time
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from jsr.config import Config
 from jsr.geometry import backproject_pixels, inlier_threshold, invert_transform, rotation_angle, transform_points
@@ -79,8 +81,6 @@ def fill_unlabelled(ownership: np.ndarray, unlabelled: np.ndarray, radius: int) 
     """``ownership`` ``(H, W)`` uint8 with every ``unlabelled`` pixel (no segment: no depth,
     mostly) given to the object owning more than half of the labelled pixels within ``radius``
     (0 otherwise): depth dropouts inside an object's faces belong to it."""
-    import cv2
-
     if not unlabelled.any() or not ownership.any():
         return ownership
     size = (2 * radius + 1, 2 * radius + 1)
@@ -1236,7 +1236,10 @@ class Reconstructor:
         a row, and not a registration inlier meanwhile, it is retired. Only once some object
         has been detected: before that nothing moved, and a landmark seen through is a depth
         edge or a colour/depth misregistration (measured: retiring those costs redkitchen300
-        ATE)."""
+        ATE). Even then, only when no pixel within ``objects.vacated_window_px`` of its
+        projection is near it (its surface is not just beside) and at least
+        ``objects.vacated_cluster_size`` other landmarks within ``objects.vacated_cluster_radius``
+        are seen through too (an object's old place is an area)."""
         config = self.config.objects
         if config.retire_after_vacated <= 0 or not self.static_map.keyframes:
             return
@@ -1248,12 +1251,21 @@ class Reconstructor:
             return
         camera = (points.positions[ids] - T_w_c[:3, 3]) @ T_w_c[:3, :3]
         z = camera[:, 2]
-        _, _, measured = self._depth_at_projections(camera, frame.depth)
+        (u, v), inside, measured = self._depth_at_projections(camera, frame.depth)
         seen = measured > 0
         noise = self.config.noise
         # the free-space test's margins: only a surface clearly gone counts, not a depth edge
         margin = np.maximum(config.free_space_margin, config.free_space_sigmas * noise.sigma_z_coefficient * z**2)
         through = seen & (measured > z + margin)
+        if config.vacated_window_px > 0 and through.any():
+            # gone means gone around it too: a landmark on a depth edge, projected a few pixels
+            # off, has its own surface next to the pixel behind it
+            radius = max(1, int(round(config.vacated_window_px * frame.depth.shape[1] / 640)))
+            nearest = cv2.erode(np.where(frame.depth > 0, frame.depth, np.inf).astype(np.float32),
+                                np.ones((2 * radius + 1, 2 * radius + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+            near_surface = np.zeros(len(z))
+            near_surface[inside] = nearest[v[inside], u[inside]]
+            through &= near_surface > z + margin
         if not static.bridged:
             # a landmark registered as an inlier in this frame is where its feature is: a
             # "seen through" reading there is a depth edge or colour/depth misregistration
@@ -1263,7 +1275,19 @@ class Reconstructor:
         counts = points.seen_through
         counts[ids[seen & ~through]] = 0
         counts[ids[through]] += 1
-        retire = ids[through & (counts[ids] >= config.retire_after_vacated)]
+        retire = through & (counts[ids] >= config.retire_after_vacated)
+        if config.vacated_cluster_size > 0 and retire.any():
+            # the place an object left is an area of landmarks seen through together; a depth
+            # edge or misregistered pixel gives them one by one (measured on kitchen_box120:
+            # the box's old place, 45 landmarks with a median of 32 seen-through neighbours
+            # within 15 cm; elsewhere mostly single ones)
+            through_positions = points.positions[ids[through]]
+            neighbours = cKDTree(through_positions).query_ball_point(
+                points.positions[ids[retire]], config.vacated_cluster_radius, return_length=True)
+            clustered = np.zeros_like(retire)
+            clustered[np.flatnonzero(retire)] = neighbours - 1 >= config.vacated_cluster_size
+            retire = clustered
+        retire = ids[retire]
         if len(retire):
             points.retire(retire)
             logger.debug("static map: %d landmarks retired, their surface is gone", len(retire))
@@ -1289,12 +1313,13 @@ class Reconstructor:
             T_w_o = report.T_w_c @ np.linalg.inv(T_o_c)
             object_map.last_T_w_o = T_w_o
             object_map.trajectory.append((frame.index, frame.timestamp, T_w_o))
-        if not object_map.needs_keyframe(T_o_c, self.config.keyframes):
-            return False
         points, planes = measurements.points, measurements.planes
         own_points = np.flatnonzero(assignment.point_owner == object_map.object_id)
-        own_planes = np.flatnonzero(assignment.plane_owner == object_map.object_id)
         landmark_of = inlier_landmarks(matched, result, len(points))
+        if not (object_map.needs_keyframe(T_o_c, self.config.keyframes)
+                or self._map_would_grow(object_map, points, own_points, landmark_of)):
+            return False
+        own_planes = np.flatnonzero(assignment.plane_owner == object_map.object_id)
         plane_landmark_of = inlier_plane_landmarks(matched, result, len(planes))
         keyframe = object_map.add_keyframe(
             frame.index, frame.timestamp, T_o_c, points, own_points, landmark_of[own_points],
@@ -1303,6 +1328,21 @@ class Reconstructor:
         self._index_segments(object_map, keyframe, measurements, own_segments)
         self.bundle.maybe_start(object_map)
         return True
+
+    def _map_would_grow(self, object_map: ObjectMap, points, own_points: np.ndarray,
+                        landmark_of: np.ndarray) -> bool:
+        """Whether this frame's 3D measurements given to the object and matching none of its
+        landmarks are at least ``objects.grow_keyframe_ratio`` times its active landmarks (and
+        at least ``detection.min_object_points``): a map starts from the few features of the
+        segments that gave it away, and should take the rest of the object in as soon as it
+        is seen, not only once the object-relative view has changed (measured on
+        kitchen_box120: a map started from 26 points was tracked by 9-15 inliers for 12 frames,
+        until a view change gave it a keyframe of 188 points)."""
+        ratio = self.config.objects.grow_keyframe_ratio
+        if ratio <= 0 or not len(own_points):
+            return False
+        new = int(np.count_nonzero(points.has_depth[own_points] & (landmark_of[own_points] < 0)))
+        return new >= max(self.config.detection.min_object_points, ratio * object_map.points.active.sum())
 
     # ----------------------------------------------------------------------------------
     # Outputs
