@@ -136,6 +136,7 @@ class DetectionConfig:
     require_rigid_motion: bool = True
     free_space_veto_motion: float = 0.06
     vacancy_veto: bool = True
+    in_place_turn_degrees: float = 10.0
     min_motion: float = 0.03
     min_motion_degrees: float = 3.0
     merge_gap_pixels: int = 2
@@ -296,6 +297,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "objects.vacated_window_px": (lambda v: v >= 0, "at least 0 (0: the projected pixel alone)"),
     "objects.free_space_margin": (lambda v: v > 0, "positive"),
     "objects.extent_margin": (lambda v: v >= 0, "at least 0"),
+    "detection.in_place_turn_degrees": (lambda v: v >= 0, "at least 0 (0: the in-place test always vetoes)"),
     "detection.free_space_veto_motion": (lambda v: v >= 0, "at least 0 (0: no veto)"),
     "segments.concave_angle_degrees": (lambda v: 0 <= v < 180, "in [0, 180) (0: no crease cuts)"),
     "objects.extent_share": (lambda v: 0 < v <= 1, "in (0, 1]"),

@@ -530,3 +530,43 @@ def test_young_object_map_takes_in_the_rest_of_its_object():
     owner.config = load_config(None, ["objects.grow_keyframe_ratio=0"])
     points.has_depth[:] = True
     assert not Reconstructor._map_would_grow(owner, object_map, points, own, landmark_of)
+
+
+@pytest.fixture(scope="module")
+def turning_sequence(tmp_path_factory):
+    """Seed 2 of the smooth motion: the box turns about itself by 14-17 degrees a frame from
+    frame 10 on, so its features stay within the guided search radius of where they were."""
+    root = tmp_path_factory.mktemp("objects") / "turning"
+    generate_sequence(root, SynthOptions(frames=60, objects=1, motion="smooth", width=640, height=480, seed=2))
+    return root
+
+
+@pytest.mark.parametrize("turn_degrees", [0.0, 10.0])
+def test_object_turning_about_itself_is_detected(turning_sequence, turn_degrees):
+    """detection.in_place_turn_degrees: outlier landmarks found again near their projections
+    veto a segment (a look-alike took their match), unless they agree on one large rigid turn."""
+    _, first_motion = true_object_poses(turning_sequence)
+    sequence = open_sequence(turning_sequence, max_frames=first_motion + 4)
+    result = run(turning_sequence, [f"detection.in_place_turn_degrees={turn_degrees}"], sequence=sequence)
+    created = [report.frame_index for report in result.reports if report.objects_created]
+    if turn_degrees:
+        assert created and created[0] - first_motion <= 3
+    else:
+        assert not created  # the in-place test alone vetoes it
+
+
+def test_moving_region_too_poor_to_start_gets_detail_boxes(jump_sequence):
+    """A moving region with too few 3D points to start a map is looked at closer (detail
+    keypoints) in the next CANDIDATE_DETAIL_FRAMES frames, then forgotten."""
+    from jsr.pipeline.reconstruct import CANDIDATE_DETAIL_FRAMES
+
+    sequence = open_sequence(jump_sequence, max_frames=1)
+    reconstructor = Reconstructor(load_config(None, ["features.object_detail=true"]), sequence.intrinsics)
+    reconstructor._candidate_boxes.append(((100, 80, 140, 120), 5 + CANDIDATE_DETAIL_FRAMES))
+    margin = reconstructor.config.features.object_detail_margin
+    grown = int(round(margin * 40))
+    assert reconstructor._detail_boxes(6) == [(100 - grown, 80 - grown, 140 + grown, 120 + grown)]
+    assert reconstructor._detail_boxes(5 + CANDIDATE_DETAIL_FRAMES) != []
+    assert reconstructor._detail_boxes(6 + CANDIDATE_DETAIL_FRAMES) == []
+    assert not reconstructor._candidate_boxes
+    reconstructor.close()

@@ -74,7 +74,14 @@ FREE_SPACE_VIEWS = 2  # ... against the latest static keyframes
 MAX_OBJECT_ID = 255  # ownership masks are uint8 images
 SHAPE_CANDIDATES = 4  # surface alignments (best colour agreement first) tried by feature matching
 SURFACE_STRIDE = 2  # object surface samples (shape-based re-identification) use every 2nd pixel and row
+CANDIDATE_DETAIL_FRAMES = 3  # a moving region too poor in 3D points to start a map gets detail keypoints this many frames
 OWNERSHIP_FILL_RADIUS = 3  # px at 640 wide: pixels in no segment (no depth) take the owner of most labelled neighbours
+
+
+def _pixel_box(pixels: np.ndarray) -> tuple[int, int, int, int]:
+    """``(x0, y0, x1, y1)`` (end exclusive) bounding the True pixels of ``(H, W)`` bool."""
+    rows, cols = np.nonzero(pixels)
+    return int(cols.min()), int(rows.min()), int(cols.max()) + 1, int(rows.max()) + 1
 
 
 def fill_unlabelled(ownership: np.ndarray, unlabelled: np.ndarray, radius: int) -> np.ndarray:
@@ -222,6 +229,7 @@ class Reconstructor:
         self._free_space_cache: tuple[np.ndarray, np.ndarray] | None = None
         self._frame_pose: np.ndarray | None = None  # T_w_c of the frame being processed, if tracked
         self._previous_mask: np.ndarray | None = None  # (H, W) uint8 ownership image of the last frame
+        self._candidate_boxes: list[tuple[tuple[int, int, int, int], int]] = []  # (box, last frame to use it)
         self._static_matched: np.ndarray | None = None  # (N,) bool: its points matched to the static map
         # Subsampled depth of the latest static keyframes, for free-space tests (detection).
         self.depth_views: list[tuple[int, DepthView]] = []
@@ -236,7 +244,7 @@ class Reconstructor:
     def process(self, frame: Frame) -> FrameReport:
         """Process one frame; never raises for a frame that simply cannot be registered."""
         started = time.perf_counter()
-        measurements = self.frontend.process(frame, self._detail_boxes())
+        measurements = self.frontend.process(frame, self._detail_boxes(frame.index))
         # Bundle adjustments started after earlier keyframes ran while the front-end worked;
         # they are applied here, always at this point, so runs stay reproducible.
         for map_ in self.maps:
@@ -273,19 +281,26 @@ class Reconstructor:
         self.reports.append(report)
         return report
 
-    def _detail_boxes(self) -> list[tuple[int, int, int, int]]:
+    def _detail_boxes(self, frame_index: int) -> list[tuple[int, int, int, int]]:
         """Pixel boxes ``(x0, y0, x1, y1)`` of the objects in the previous frame's ownership
-        image, grown by ``features.object_detail_margin`` of their size on every side: where
-        the front-end adds the finest-scale keypoints (small objects carry few otherwise)."""
+        image, and of the moving regions of the last ``CANDIDATE_DETAIL_FRAMES`` frames that
+        had too few 3D points to start a map, grown by ``features.object_detail_margin`` of
+        their size on every side: where the front-end adds the finest-scale keypoints (small
+        objects carry few otherwise)."""
         features = self.config.features
-        mask = self._previous_mask
-        if not (self.config.objects.enabled and features.object_detail) or mask is None or not mask.any():
+        if not (self.config.objects.enabled and features.object_detail):
             return []
-        height, width = mask.shape
+        self._candidate_boxes = [(box, until) for box, until in self._candidate_boxes if until >= frame_index]
+        regions = [box for box, _ in self._candidate_boxes]
+        mask = self._previous_mask
+        if mask is not None and mask.any():
+            for object_id in np.unique(mask[mask > 0]):
+                regions.append(_pixel_box(mask == object_id))
+        if not regions:
+            return []
+        height, width = (mask.shape if mask is not None else (self.intrinsics.height, self.intrinsics.width))
         boxes = []
-        for object_id in np.unique(mask[mask > 0]):
-            rows, cols = np.nonzero(mask == object_id)
-            x0, x1, y0, y1 = cols.min(), cols.max() + 1, rows.min(), rows.max() + 1
+        for x0, y0, x1, y1 in regions:
             grow_x = int(round(features.object_detail_margin * (x1 - x0)))
             grow_y = int(round(features.object_detail_margin * (y1 - y0)))
             boxes.append((max(0, x0 - grow_x), max(0, y0 - grow_y), min(width, x1 + grow_x), min(height, y1 + grow_y)))
@@ -754,9 +769,17 @@ class Reconstructor:
         inliers, _ = inlier_mask(static.matched, static.result, num_points, len(measurements.planes))
         by_outliers = detect_moving_segments(segments, matched, inliers, self.config.detection,
                                              exclude=assignment.point_owner > 0)
+        in_place = by_outliers
         by_outliers = self._not_in_place(measurements, static, by_outliers, inliers, report.T_w_c, keep_unknown=False)
+        in_place = [s for s in in_place if s not in by_outliers]
         violations, consistent = self._free_space(frame, measurements)
         by_outliers = self._rigidly_moved(frame, measurements, static, by_outliers, inliers)
+        if in_place and self.config.detection.in_place_turn_degrees > 0:
+            # an object turning about itself keeps its features near where they were: the
+            # in-place test cannot tell it from a look-alike, its one rigid turn can
+            turned = self._rigidly_moved(frame, measurements, static, in_place, inliers,
+                                         min_turn_degrees=self.config.detection.in_place_turn_degrees)
+            by_outliers = sorted(set(by_outliers) | set(turned))
         by_free_space = self._free_space_segments(measurements, violations, consistent, inliers)
         by_free_space = self._not_in_place(measurements, static, by_free_space, inliers, report.T_w_c,
                                            keep_unknown=True)
@@ -771,6 +794,10 @@ class Reconstructor:
             group_points = np.concatenate([segments.point_indices[s] for s in group]).astype(np.int64)
             group_points = group_points[assignment.point_owner[group_points] == 0]
             if int(points.has_depth[group_points].sum()) < self.config.detection.min_object_points:
+                # a small object carries few half-resolution keypoints: look closer at it in
+                # the next frames (features.object_detail) and start it once it has enough
+                self._candidate_boxes.append((_pixel_box(np.isin(segments.label_image, group)),
+                                              frame.index + CANDIDATE_DETAIL_FRAMES))
                 continue
             if self.config.objects.reidentify and self._reidentify(frame, measurements, group, group_points, by_id,
                                                                    assignment):
@@ -819,16 +846,20 @@ class Reconstructor:
         return kept
 
     def _rigidly_moved(self, frame: Frame, measurements: FrameMeasurements, static: StaticRegistration,
-                       candidates: list[int], static_inliers: np.ndarray) -> list[int]:
+                       candidates: list[int], static_inliers: np.ndarray,
+                       min_turn_degrees: float | None = None) -> list[int]:
         """The candidate segments whose static-map outliers agree on one rigid motion
-        (``detection.require_rigid_motion``), grouped as touching regions.
+        (``detection.require_rigid_motion``), grouped as touching regions. With
+        ``min_turn_degrees``, only motions turning the region by at least that much count.
 
         An object that moved carries its old landmarks along: their matches are outliers of the
         camera pose but inliers of one other rigid transformation. Outliers from view-dependent
         appearance (specular highlights) or repeated texture agree on nothing.
         """
-        if not candidates or not self.config.detection.require_rigid_motion:
+        if not candidates:
             return candidates
+        if not self.config.detection.require_rigid_motion:
+            return candidates if min_turn_degrees is None else []
         segments = measurements.segments
         matched = static.matched
         three_d = matched.is_3d
@@ -857,6 +888,8 @@ class Reconstructor:
                          measurements.frame_index, group, moved, turned, motion.num_inliers, len(rows))
             detection = self.config.detection
             if not (moved >= detection.min_motion or turned >= detection.min_motion_degrees):
+                continue
+            if min_turn_degrees is not None and turned < min_turn_degrees:
                 continue
             if moved < detection.free_space_veto_motion and self._seen_static(frame, measurements, group):
                 # A small motion of a region whose surface is where the static keyframes saw
