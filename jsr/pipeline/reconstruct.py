@@ -74,6 +74,7 @@ FREE_SPACE_VIEWS = 2  # ... against the latest static keyframes
 MAX_OBJECT_ID = 255  # ownership masks are uint8 images
 SHAPE_CANDIDATES = 4  # surface alignments (best colour agreement first) tried by feature matching
 SURFACE_STRIDE = 2  # object surface samples (shape-based re-identification) use every 2nd pixel and row
+IN_PLACE_TURN_INLIER_FACTOR = 2  # overruling the in-place veto by a rigid turn takes this many times the usual agreeing outliers
 CANDIDATE_DETAIL_FRAMES = 3  # a moving region too poor in 3D points to start a map gets detail keypoints this many frames
 OWNERSHIP_FILL_RADIUS = 3  # px at 640 wide: pixels in no segment (no depth) take the owner of most labelled neighbours
 
@@ -889,7 +890,9 @@ class Reconstructor:
             detection = self.config.detection
             if not (moved >= detection.min_motion or turned >= detection.min_motion_degrees):
                 continue
-            if min_turn_degrees is not None and turned < min_turn_degrees:
+            if min_turn_degrees is not None and (
+                    turned < min_turn_degrees
+                    or motion.num_inliers < IN_PLACE_TURN_INLIER_FACTOR * ransac.min_inliers):
                 continue
             if moved < detection.free_space_veto_motion and self._seen_static(frame, measurements, group):
                 # A small motion of a region whose surface is where the static keyframes saw
