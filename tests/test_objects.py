@@ -516,7 +516,7 @@ def test_young_object_map_takes_in_the_rest_of_its_object():
     landmarks in new 3D measurements of the object makes a keyframe, whatever the view."""
     config = load_config(None)
     owner = SimpleNamespace(config=config)
-    object_map = SimpleNamespace(points=SimpleNamespace(active=np.ones(26, dtype=bool)))
+    object_map = SimpleNamespace(points=SimpleNamespace(active_count=26))
     points = SimpleNamespace(has_depth=np.ones(200, dtype=bool))
     own = np.arange(100)
     landmark_of = np.full(200, -1)

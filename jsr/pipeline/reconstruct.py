@@ -288,10 +288,11 @@ class Reconstructor:
         had too few 3D points to start a map, grown by ``features.object_detail_margin`` of
         their size on every side: where the front-end adds the finest-scale keypoints (small
         objects carry few otherwise)."""
+        # expired candidates go even with the detail pass off, so the list cannot grow
+        self._candidate_boxes = [(box, until) for box, until in self._candidate_boxes if until >= frame_index]
         features = self.config.features
         if not (self.config.objects.enabled and features.object_detail):
             return []
-        self._candidate_boxes = [(box, until) for box, until in self._candidate_boxes if until >= frame_index]
         regions = [box for box, _ in self._candidate_boxes]
         mask = self._previous_mask
         if mask is not None and mask.any():
@@ -299,7 +300,7 @@ class Reconstructor:
                 regions.append(_pixel_box(mask == object_id))
         if not regions:
             return []
-        height, width = (mask.shape if mask is not None else (self.intrinsics.height, self.intrinsics.width))
+        width, height = self.intrinsics.width, self.intrinsics.height
         boxes = []
         for x0, y0, x1, y1 in regions:
             grow_x = int(round(features.object_detail_margin * (x1 - x0)))
@@ -1320,9 +1321,7 @@ class Reconstructor:
             through_positions = points.positions[ids[through]]
             neighbours = cKDTree(through_positions).query_ball_point(
                 points.positions[ids[retire]], config.vacated_cluster_radius, return_length=True)
-            clustered = np.zeros_like(retire)
-            clustered[np.flatnonzero(retire)] = neighbours - 1 >= config.vacated_cluster_size
-            retire = clustered
+            retire[retire] = neighbours - 1 >= config.vacated_cluster_size  # itself is one of them
         retire = ids[retire]
         if len(retire):
             points.retire(retire)
@@ -1378,7 +1377,7 @@ class Reconstructor:
         if ratio <= 0 or not len(own_points):
             return False
         new = int(np.count_nonzero(points.has_depth[own_points] & (landmark_of[own_points] < 0)))
-        return new >= max(self.config.detection.min_object_points, ratio * object_map.points.active.sum())
+        return new >= max(self.config.detection.min_object_points, ratio * object_map.points.active_count)
 
     # ----------------------------------------------------------------------------------
     # Outputs
