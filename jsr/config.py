@@ -137,6 +137,7 @@ class DetectionConfig:
     free_space_veto_motion: float = 0.06
     vacancy_veto: bool = True
     in_place_turn_degrees: float = 10.0
+    in_place_turn_memory_frames: int = 3
     min_motion: float = 0.03
     min_motion_degrees: float = 3.0
     merge_gap_pixels: int = 2
@@ -156,6 +157,7 @@ class ObjectsConfig:
     extent_margin: float = 0.03
     extent_share: float = 0.5
     retire_object_matches: bool = True
+    hold_back_suspects: bool = True
     retire_after_outliers: int = 0
     retire_after_vacated: int = 3
     vacated_cluster_size: int = 5

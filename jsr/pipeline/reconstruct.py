@@ -74,7 +74,7 @@ FREE_SPACE_VIEWS = 2  # ... against the latest static keyframes
 MAX_OBJECT_ID = 255  # ownership masks are uint8 images
 SHAPE_CANDIDATES = 4  # surface alignments (best colour agreement first) tried by feature matching
 SURFACE_STRIDE = 2  # object surface samples (shape-based re-identification) use every 2nd pixel and row
-IN_PLACE_TURN_INLIER_FACTOR = 2  # overruling the in-place veto by a rigid turn takes this many times the usual agreeing outliers
+IN_PLACE_TURN_INLIER_FACTOR = 2  # overruling the in-place veto by a rigid turn takes this many times the usual agreeing outliers (or detection.in_place_turn_memory_frames)
 CANDIDATE_DETAIL_FRAMES = 3  # a moving region too poor in 3D points to start a map gets detail keypoints this many frames
 OWNERSHIP_FILL_RADIUS = 3  # px at 640 wide: pixels in no segment (no depth) take the owner of most labelled neighbours
 
@@ -232,6 +232,12 @@ class Reconstructor:
         self._previous_mask: np.ndarray | None = None  # (H, W) uint8 ownership image of the last frame
         self._candidate_boxes: list[tuple[tuple[int, int, int, int], int]] = []  # (box, last frame to use it)
         self._static_matched: np.ndarray | None = None  # (N,) bool: its points matched to the static map
+        # This frame's segments that may have moved, but not surely enough to start a map:
+        # an unconfirmed in-place turn, a moving region too poor in 3D points.
+        self._suspect_segments: list[int] = []
+        # In-place turns of recent frames that had too few agreeing outliers alone:
+        # (frame index, (4, 4) world motion of the region, new place -> old place)
+        self._recent_turns: list[tuple[int, np.ndarray]] = []
         # Subsampled depth of the latest static keyframes, for free-space tests (detection).
         self.depth_views: list[tuple[int, DepthView]] = []
 
@@ -319,6 +325,7 @@ class Reconstructor:
         self._adjacency_cache = None
         self._free_space_cache = None
         self._frame_pose = report.T_w_c if static is not None else None
+        self._suspect_segments = []
         self._static_matched = np.zeros(len(measurements.points), dtype=bool)
         if static is not None and not static.bridged:
             self._static_matched[static.matched.point_measurements] = True
@@ -800,6 +807,7 @@ class Reconstructor:
                 # the next frames (features.object_detail) and start it once it has enough
                 self._candidate_boxes.append((_pixel_box(np.isin(segments.label_image, group)),
                                               frame.index + CANDIDATE_DETAIL_FRAMES))
+                self._suspect_segments.extend(group)  # nor does its new place enter the static map
                 continue
             if self.config.objects.reidentify and self._reidentify(frame, measurements, group, group_points, by_id,
                                                                    assignment):
@@ -875,9 +883,11 @@ class Reconstructor:
                 continue
             subset = matched.correspondences.subset(point3d=rows, point2d=np.zeros(0, dtype=np.int64),
                                                     plane=np.zeros(0, dtype=np.int64))
+            usual_inliers = max(self.config.detection.min_segment_features, self.config.ransac.min_inliers)
+            # a turn is remembered (and held back) from fewer agreeing outliers than confirm it
             ransac = dataclasses.replace(self.config.ransac, min_matches=self.config.detection.min_segment_features,
-                                         min_inliers=max(self.config.detection.min_segment_features,
-                                                         self.config.ransac.min_inliers), min_inlier_ratio=0.5)
+                                         min_inliers=usual_inliers if min_turn_degrees is None else
+                                         self.config.detection.min_segment_features, min_inlier_ratio=0.5)
             motion = register(subset, ransac, self.config.noise, self.objects_rng)
             if not motion.success:
                 continue
@@ -891,9 +901,7 @@ class Reconstructor:
             detection = self.config.detection
             if not (moved >= detection.min_motion or turned >= detection.min_motion_degrees):
                 continue
-            if min_turn_degrees is not None and (
-                    turned < min_turn_degrees
-                    or motion.num_inliers < IN_PLACE_TURN_INLIER_FACTOR * ransac.min_inliers):
+            if min_turn_degrees is not None and turned < min_turn_degrees:
                 continue
             if moved < detection.free_space_veto_motion and self._seen_static(frame, measurements, group):
                 # A small motion of a region whose surface is where the static keyframes saw
@@ -906,8 +914,52 @@ class Reconstructor:
                 logger.debug("frame %d: segments %s: where they came from is not vacated", measurements.frame_index,
                              group)
                 continue
+            if min_turn_degrees is not None and motion.num_inliers < IN_PLACE_TURN_INLIER_FACTOR * usual_inliers:
+                seen = detection.in_place_turn_memory_frames > 0 and self._turn_seen_before(
+                    measurements, group, static.result.transformation, motion.transformation)
+                if not (seen and motion.num_inliers >= usual_inliers):
+                    # not confirmed (yet): its new place stays out of the static map meanwhile
+                    self._suspect_segments.extend(group)
+                    continue
             confirmed.extend(group)
         return sorted(confirmed)
+
+    def _turn_seen_before(self, measurements: FrameMeasurements, group: list[int], T_w_c: np.ndarray,
+                          T_w_old: np.ndarray) -> bool:
+        """Whether an in-place turn of the region ``group`` (its camera-frame points go to
+        their old place by ``T_w_old``; ``T_w_c`` is the camera pose), with too few agreeing
+        outliers to decide alone, was also found in one of the last
+        ``detection.in_place_turn_memory_frames`` frames. Same turn: it takes the region's
+        centroid to within ``detection.min_motion`` of the same old place, and the rotations
+        differ by less than ``detection.min_motion_degrees``. An object that turned and came to
+        rest gives the same turn in every frame; look-alikes and a person walking give a
+        different one each time. The turn is remembered either way."""
+        points = measurements.points
+        indices = np.concatenate([measurements.segments.point_indices[s] for s in group]).astype(np.int64)
+        indices = indices[points.has_depth[indices]]
+        if not len(indices):
+            return False
+        centroid = transform_points(T_w_c, points.points[indices]).mean(axis=0)
+        motion = T_w_old @ invert_transform(T_w_c)  # world, new place -> old place
+        detection = self.config.detection
+        frame_index = measurements.frame_index
+        memory = detection.in_place_turn_memory_frames
+        self._recent_turns = [turn for turn in self._recent_turns if frame_index - turn[0] <= memory]
+        old_place = transform_points(motion, centroid[None])[0]
+        seen = False
+        for earlier_frame, earlier_motion in self._recent_turns:
+            if earlier_frame == frame_index:
+                continue
+            earlier_old_place = transform_points(earlier_motion, centroid[None])[0]
+            difference = np.degrees(rotation_angle(earlier_motion[:3, :3].T @ motion[:3, :3]))
+            if np.linalg.norm(old_place - earlier_old_place) <= detection.min_motion \
+                    and difference <= detection.min_motion_degrees:
+                seen = True
+                break
+        self._recent_turns.append((frame_index, motion))
+        logger.debug("frame %d: segments %s: in-place turn %s in an earlier frame", frame_index, group,
+                     "also seen" if seen else "not seen")
+        return seen
 
     def _seen_static(self, frame: Frame, measurements: FrameMeasurements, group: list[int]) -> bool:
         """Whether most sampled pixels of the segments ``group`` lie where the latest static
@@ -1162,6 +1214,8 @@ class Reconstructor:
             return
         points, planes = measurements.points, measurements.planes
         static_points = np.flatnonzero(assignment.point_owner == 0)
+        if self.config.objects.hold_back_suspects and self._suspect_segments and not static.bridged:
+            static_points = self._without_suspects(measurements, static, static_points)
         static_planes = np.flatnonzero(assignment.plane_owner == 0)
         if static.bridged:  # matched to the previous frame, not to the map: all measurements are new
             landmark_of = np.full(len(points), -1, dtype=np.int64)
@@ -1177,6 +1231,25 @@ class Reconstructor:
         report.new_keyframe = True
         self._remember_depth(frame, measurements, assignment)
         self.bundle.maybe_start(self.static_map)
+
+    def _without_suspects(self, measurements: FrameMeasurements, static: StaticRegistration,
+                          point_ids: np.ndarray) -> np.ndarray:
+        """``point_ids`` ``(K,)`` without the measurements of this frame's suspect segments
+        that are no static inliers: segments whose outliers agree on an in-place turn not yet
+        confirmed (:meth:`_rigidly_moved`), and moving regions too poor in 3D points to start
+        a map (:meth:`_detect`).
+
+        Why: a small object that turned and moved a few centimetres keeps only 6-9 matched
+        outliers. A static keyframe taking its new surface as landmarks would make it static
+        in every later frame, so the turn would never be confirmed. Held back, its old
+        landmarks stay outliers and nothing of its new place enters the static map."""
+        inliers, _ = inlier_mask(static.matched, static.result, len(measurements.points), len(measurements.planes))
+        point_segment = measurements.segments.segment_of_points(len(measurements.points))
+        held = np.isin(point_segment[point_ids], self._suspect_segments) & ~inliers[point_ids]
+        if held.any():
+            logger.debug("frame %d: %d measurements of suspect segments %s held back from the static keyframe",
+                         measurements.frame_index, int(held.sum()), self._suspect_segments)
+        return point_ids[~held]
 
     def _remember_depth(self, frame: Frame, measurements: FrameMeasurements, assignment: FrameAssignment) -> None:
         """Keep the static pixels' depth of the new static keyframe (subsampled) for free-space tests."""
