@@ -36,7 +36,7 @@ frames used; "moves" = its true T_w_o changes by > 1 mm or > 0.5 deg from the pr
 3. pose error: for each true moving object, the trajectory T_w_o of each map matched to it
    against the true T_w_o on common frames, as ``jsr.evaluate.object_pose_error`` does: poses
    compared in the camera frame (C = inv(T_w_c) T_w_o, which needs no world alignment) after removing the constant offset between the estimated and true object frames
-   (one offset per map); translation RMSE (cm) and rotation RMSE (deg) pooled over the tracked
+   (one offset per map), the translation error taken at the true object's centre; translation RMSE (cm) and rotation RMSE (deg) pooled over the tracked
    frames of all its maps (per map in the JSON). The estimated T_w_c used is the frame's
    pose at the time (``FrameReport.T_w_c``), the one T_w_o was composed with, so C_est is the
    object tracker's own estimate (bundle adjustment of the static map moves camera poses later

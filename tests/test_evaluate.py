@@ -211,18 +211,36 @@ def test_object_pose_error_ignores_a_single_lost_frame_in_translation():
 
 def test_object_pose_error_of_two_degrees():
     _, cameras, objects, offset, world = object_scene(9)
-    # +2 and -2 degrees about a fixed object axis on alternate frames: the chordal mean of
-    # X R(+2) and X R(-2) is exactly X (R(+a) + R(-a) is symmetric positive definite), so every
-    # frame is exactly 2 degrees off and the object origin does not move.
+    # +2 and -2 degrees about a fixed axis through the true object's centre on alternate
+    # frames: the chordal mean of R(-2) inv(X) and R(+2) inv(X) is exactly inv(X) (R(+a) + R(-a)
+    # is symmetric positive definite), so every frame is exactly 2 degrees off and the centre
+    # does not move.
     axis = np.array([0.3, 0.9, -0.2])
     errors = np.stack(
         [make_transform(rotation_about_axis(axis, np.radians(2.0 * (-1) ** i)), np.zeros(3)) for i in range(40)]
     )
-    result = object_pose_error(world @ cameras, world @ objects @ offset @ errors, cameras, objects)
+    result = object_pose_error(world @ cameras, world @ objects @ errors @ offset, cameras, objects)
     assert result.rotation_rmse_deg == pytest.approx(2.0, abs=1e-7)
     assert result.rotation_median_deg == pytest.approx(2.0, abs=1e-7)
     assert result.translation_rmse_cm < 1e-9
     np.testing.assert_allclose(result.offset, offset, atol=1e-9)
+
+
+def test_object_pose_error_is_measured_at_the_true_centre_not_at_a_far_frame_origin():
+    """jsr's object frame is the camera of the detecting frame, 1.5 m from the object: a
+    rotation error about the object's centre must not count as centimetres of translation,
+    while the same rotation about that far origin moves the centre by 1.5 m x angle."""
+    _, cameras, objects, _, world = object_scene(10)
+    far_origin = make_transform(np.eye(3), np.array([0.0, 0.3, -1.5]))  # X: estimated frame 1.5 m away
+    axis = np.array([0.0, 1.0, 0.0])
+    turns = np.stack([make_transform(rotation_about_axis(axis, np.radians(1.0 * (-1) ** i)), np.zeros(3))
+                      for i in range(40)])
+    about_centre = object_pose_error(world @ cameras, world @ objects @ turns @ far_origin, cameras, objects)
+    assert about_centre.translation_rmse_cm < 1e-9
+    assert about_centre.rotation_rmse_deg == pytest.approx(1.0, abs=1e-7)
+    about_far_origin = object_pose_error(world @ cameras, world @ objects @ far_origin @ turns, cameras, objects)
+    lever = np.linalg.norm(np.cross(axis, far_origin[:3, 3]))  # distance of the centre from the turn axis
+    assert about_far_origin.translation_median_cm == pytest.approx(100.0 * lever * np.radians(1.0), rel=1e-3)
 
 
 def _fake_error(estimated_id: int, true_id: int, median: float, frames: int = 10) -> ObjectPoseError:
