@@ -652,3 +652,50 @@ def test_suspect_segments_give_the_static_keyframe_only_their_inliers():
     finally:
         module.inlier_mask = original
     assert kept.tolist() == [0, 1, 2, 5]
+
+
+def test_landmarks_in_space_seen_empty_are_phantoms():
+    """Reconstructor._in_free_space: a static landmark the latest static keyframe saw through
+    (its wall 3 m away, the landmark at 2 m) is a phantom, whatever lies on or behind the
+    wall, or outside the view, is not."""
+    from jsr.synth import synth_intrinsics
+
+    intrinsics = synth_intrinsics(160, 120)
+    reconstructor = Reconstructor(load_config(None), intrinsics)
+    reconstructor.static_map.keyframes = [SimpleNamespace(T_map_cam=np.eye(4))]  # the view's keyframe
+    reconstructor.depth_views.append((0, DepthView(np.full((30, 40), 3.0, dtype=np.float32), np.eye(4), 4)))
+    points = np.array([[0.0, 0.0, 2.0],  # in front of the wall: seen through
+                       [0.1, 0.0, 2.95],  # on the wall
+                       [0.0, 0.1, 3.5],  # behind it
+                       [5.0, 0.0, 2.0]])  # outside the view
+    assert reconstructor._in_free_space(points).tolist() == [True, False, False, False]
+    assert not Reconstructor(load_config(None, ["objects.free_space_detection=false"]), intrinsics)._in_free_space(
+        points).any()
+    reconstructor.close()
+
+
+@pytest.fixture(scope="module")
+def returning_sequence(tmp_path_factory):
+    """Seed 2 of the jumping box (60 frames; the test uses the first 23): at frame 19 the box
+    jumps back to 5 cm from where it stood before its first jump (frame 10), with the same
+    rotation. Static landmarks of its first place that nothing retired are found again on it,
+    8-10 px off, as if in place."""
+    root = tmp_path_factory.mktemp("objects") / "returning"
+    generate_sequence(root, SynthOptions(frames=60, objects=1, motion="jump", width=640, height=480, seed=2))
+    return root
+
+
+def test_object_back_at_its_old_place_is_detected(returning_sequence):
+    """The in-place test does not count landmarks lying in space the static keyframes saw
+    empty (phantoms of the box's first place): the box is found again at once after its
+    jump at frame 19, and tracked from then on."""
+    rows = np.loadtxt(returning_sequence / "objects" / "object_1.txt")
+    jumps = np.flatnonzero(np.linalg.norm(np.diff(rows[:, 1:8], axis=0), axis=1) > 1e-6) + 1
+    second_jump = int(jumps[1])
+    sequence = open_sequence(returning_sequence, max_frames=second_jump + 4)
+    result = run(returning_sequence, sequence=sequence)
+    frames = list(result.sequence)
+    for report in result.reports[second_jump:]:
+        labels = labels_of(returning_sequence, frames[report.frame_index])
+        given = np.isin(report.mask, report.objects_tracked) & (report.mask > 0)
+        assert report.objects_tracked and (labels[given] == 1).mean() > 0.9

@@ -837,7 +837,41 @@ class Reconstructor:
                              self.static_map.points.descriptors[landmarks], T_w_c, self.intrinsics,
                              self.config.matching.guided_radius_px, self.config.matching.ratio_test,
                              self.config.matching.max_descriptor_distance)
+        if len(found):
+            # a landmark lying where the latest static keyframes saw empty space is a phantom
+            # (what it was on moved away), not evidence of a surface still in place
+            phantom = self._in_free_space(self.static_map.points.positions[landmarks[found[:, 1]]])
+            if phantom.any():
+                logger.debug("frame %d: segment %d: %d of the outlier landmarks found in place lie in free space",
+                             measurements.frame_index, segment, int(phantom.sum()))
+            found = found[~phantom]
         return len(found), len(landmarks)
+
+    def _in_free_space(self, world_points: np.ndarray) -> np.ndarray:
+        """``(N,)`` bool: which of the ``(N, 3)`` world points one of the latest static
+        keyframes saw through, its whole neighbourhood measured farther away than the point by
+        more than ``max(objects.free_space_margin, objects.free_space_sigmas * sigma_Z)`` (the
+        free-space test's margins; see :class:`~jsr.pipeline.objects.DepthView`)."""
+        through = np.zeros(len(world_points), dtype=bool)
+        config = self.config.objects
+        if not (config.free_space_detection and self.depth_views) or not len(world_points):
+            return through
+        intr = self.intrinsics
+        for keyframe_id, view in self.depth_views:
+            T_w_view = self.static_map.keyframes[keyframe_id].T_map_cam  # after bundle adjustment
+            in_view = transform_points(invert_transform(T_w_view), world_points)
+            z = in_view[:, 2]
+            safe = np.where(z > 1e-3, z, 1.0)
+            u = np.round((intr.fx * in_view[:, 0] / safe + intr.cx) / view.stride).astype(np.int64)
+            v = np.round((intr.fy * in_view[:, 1] / safe + intr.cy) / view.stride).astype(np.int64)
+            height, width = view.near_depth.shape
+            inside = (z > 1e-3) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+            nearest = np.zeros(len(z))
+            nearest[inside] = view.near_depth[v[inside], u[inside]]
+            margin = np.maximum(config.free_space_margin,
+                                config.free_space_sigmas * self.config.noise.sigma_z_coefficient * z**2)
+            through |= (nearest > 0) & (nearest > z + margin)
+        return through
 
     def _not_in_place(self, measurements: FrameMeasurements, static: StaticRegistration, candidates: list[int],
                       static_inliers: np.ndarray, T_w_c: np.ndarray, keep_unknown: bool) -> list[int]:
