@@ -699,3 +699,46 @@ def test_object_back_at_its_old_place_is_detected(returning_sequence):
         labels = labels_of(returning_sequence, frames[report.frame_index])
         given = np.isin(report.mask, report.objects_tracked) & (report.mask > 0)
         assert report.objects_tracked and (labels[given] == 1).mean() > 0.9
+
+
+class _Points(SimpleNamespace):
+    def __len__(self):
+        return len(self.has_depth)
+
+
+class _Segments:
+    """Just the segment interface :meth:`Reconstructor._grow` reads."""
+
+    def __init__(self, point_indices):
+        self.point_indices = [np.asarray(indices, dtype=np.int64) for indices in point_indices]
+
+    def __len__(self):
+        return len(self.point_indices)
+
+    def segment_of_points(self, count):
+        owner = np.full(count, -1, dtype=np.int64)
+        for segment, indices in enumerate(self.point_indices):
+            owner[indices] = segment
+        return owner
+
+
+@pytest.mark.parametrize("violations, grown", [(20, [0, 1]), (5, [0])])
+def test_face_with_few_3d_features_grows_into_its_object_when_it_moved_in(violations, grown):
+    """A face next to a tracked object seen at a grazing angle (10 features, 2 with depth)
+    joins the object when at least GROW_MIN_VIOLATION_SHARE of its sampled pixels lie in space
+    the static keyframes saw empty; a segment like it where they saw a surface does not."""
+    from jsr.synth import synth_intrinsics
+
+    reconstructor = Reconstructor(load_config(None), synth_intrinsics(640, 480))
+    segments = _Segments([np.arange(0, 20), np.arange(20, 30), np.arange(30, 40)])
+    has_depth = np.ones(40, dtype=bool)
+    has_depth[22:30] = False  # the grazing face: 2 of its 10 features have depth
+    has_depth[32:40] = False  # ... and so has the segment beside it that stayed where it was
+    measurements = SimpleNamespace(segments=segments, points=_Points(has_depth=has_depth))
+    reconstructor._frame_pose = np.eye(4)
+    reconstructor._static_matched = np.zeros(40, dtype=bool)
+    reconstructor._adjacency_cache = np.array([[0, 1], [0, 2]])
+    reconstructor._free_space_cache = (np.array([0, violations, 0]), np.array([0, 40 - violations, 40]))
+    owner = np.array([1, 0, 0])
+    assert reconstructor._grow(SimpleNamespace(), measurements, [0], np.zeros(40, dtype=bool), owner) == grown
+    reconstructor.close()

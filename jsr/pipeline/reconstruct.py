@@ -75,6 +75,7 @@ MAX_OBJECT_ID = 255  # ownership masks are uint8 images
 SHAPE_CANDIDATES = 4  # surface alignments (best colour agreement first) tried by feature matching
 SURFACE_STRIDE = 2  # object surface samples (shape-based re-identification) use every 2nd pixel and row
 IN_PLACE_TURN_INLIER_FACTOR = 2  # overruling the in-place veto by a rigid turn takes this many times the usual agreeing outliers (or detection.in_place_turn_memory_frames)
+GROW_MIN_VIOLATION_SHARE = 0.3  # a face with few 3D features joins its object when this share of its pixels lies in space seen empty
 CANDIDATE_DETAIL_FRAMES = 3  # a moving region too poor in 3D points to start a map gets detail keypoints this many frames
 OWNERSHIP_FILL_RADIUS = 3  # px at 640 wide: pixels in no segment (no depth) take the owner of most labelled neighbours
 
@@ -627,7 +628,8 @@ class Reconstructor:
         candidates &= segment_owner == 0
         # A segment whose surface lies where the static keyframes saw one has not moved, even if
         # the static map holds few landmarks on it (a table top the object stands on) ...
-        seen_static = self._seen_before(*self._free_space(frame, measurements))
+        violations, consistent = self._free_space(frame, measurements)
+        seen_static = self._seen_before(violations, consistent)
         # ... unless the static landmarks matched in it are (nearly) all outliers: they moved
         # with it, and the surface the keyframes saw there was the object itself before it moved.
         min_features = self.config.detection.min_segment_features
@@ -638,6 +640,13 @@ class Reconstructor:
         moved = (stats.matched >= min_features) & (stats.outlier_ratio >= 1.0 - UNSUPPORTED_STATIC_SHARE) & (
             static_count < min_features)
         candidates &= ~seen_static | moved
+        # A face seen at a grazing angle has features but few with depth: nothing says it is
+        # static, and much of it lying in space the static keyframes saw empty says it moved in.
+        sampled = violations + consistent
+        three_d = np.array([int(measurements.points.has_depth[np.asarray(i, dtype=np.int64)].sum())
+                            for i in measurements.segments.point_indices])
+        candidates |= (three_d < min_features) & (segment_owner == 0) & (static_count == 0) & (
+            sampled >= self._free_space_min_samples()) & (violations >= GROW_MIN_VIOLATION_SHARE * sampled)
         if inside is not None:
             # Inside the object's extent and not shown static by its features: the object's own
             # faces, even without reliable 3D features (seen at a grazing angle).
