@@ -701,12 +701,12 @@ def test_object_back_at_its_old_place_is_detected(returning_sequence):
         assert report.objects_tracked and (labels[given] == 1).mean() > 0.9
 
 
-class _Points(SimpleNamespace):
+class _FramePoints(SimpleNamespace):
     def __len__(self):
         return len(self.has_depth)
 
 
-class _Segments:
+class _FrameSegments:
     """Just the segment interface :meth:`Reconstructor._grow` reads."""
 
     def __init__(self, point_indices):
@@ -730,11 +730,11 @@ def test_face_with_few_3d_features_grows_into_its_object_when_it_moved_in(violat
     from jsr.synth import synth_intrinsics
 
     reconstructor = Reconstructor(load_config(None), synth_intrinsics(640, 480))
-    segments = _Segments([np.arange(0, 20), np.arange(20, 30), np.arange(30, 40)])
+    segments = _FrameSegments([np.arange(0, 20), np.arange(20, 30), np.arange(30, 40)])
     has_depth = np.ones(40, dtype=bool)
     has_depth[22:30] = False  # the grazing face: 2 of its 10 features have depth
     has_depth[32:40] = False  # ... and so has the segment beside it that stayed where it was
-    measurements = SimpleNamespace(segments=segments, points=_Points(has_depth=has_depth))
+    measurements = SimpleNamespace(segments=segments, points=_FramePoints(has_depth=has_depth))
     reconstructor._frame_pose = np.eye(4)
     reconstructor._static_matched = np.zeros(40, dtype=bool)
     reconstructor._adjacency_cache = np.array([[0, 1], [0, 2]])
