@@ -120,5 +120,6 @@ def main() -> None:
         print(f"{name:<16}{frames:>7}{np.mean(ates) * 100:>12.2f}  {per_seed:<20}{fps:>9.2f}{lost:>6}{keyframes:>5}"
               f"{o3d_ate * 100:>12.2f}{o3d_fps:>9.2f}")
 
+
 if __name__ == "__main__":
     main()

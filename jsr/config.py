@@ -152,6 +152,7 @@ class ObjectsConfig:
     segment_registration: str = "always"
     segment_completion: bool = True
     grow_segments: bool = True
+    grow_violation_share: float = 0.3
     grow_inside_extent: bool = True
     split_mixed_segments: bool = True
     extent_margin: float = 0.03
@@ -300,6 +301,8 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "objects.free_space_margin": (lambda v: v > 0, "positive"),
     "objects.extent_margin": (lambda v: v >= 0, "at least 0"),
     "detection.in_place_turn_degrees": (lambda v: v >= 0, "at least 0 (0: the in-place test always vetoes)"),
+    "detection.in_place_turn_memory_frames": (lambda v: v >= 0, "at least 0 (0: one frame alone confirms a turn)"),
+    "objects.grow_violation_share": (lambda v: 0 <= v <= 1, "between 0 and 1 (0: off)"),
     "detection.free_space_veto_motion": (lambda v: v >= 0, "at least 0 (0: no veto)"),
     "segments.concave_angle_degrees": (lambda v: 0 <= v < 180, "in [0, 180) (0: no crease cuts)"),
     "objects.extent_share": (lambda v: 0 < v <= 1, "in (0, 1]"),

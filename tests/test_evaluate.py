@@ -212,7 +212,7 @@ def test_object_pose_error_ignores_a_single_lost_frame_in_translation():
 def test_object_pose_error_of_two_degrees():
     _, cameras, objects, offset, world = object_scene(9)
     # +2 and -2 degrees about a fixed axis through the true object's centre on alternate
-    # frames: the chordal mean of R(-2) inv(X) and R(+2) inv(X) is exactly inv(X) (R(+a) + R(-a)
+    # frames: the chordal mean of inv(X) R(-2) and inv(X) R(+2) is exactly inv(X) (R(+a) + R(-a)
     # is symmetric positive definite), so every frame is exactly 2 degrees off and the centre
     # does not move.
     axis = np.array([0.3, 0.9, -0.2])

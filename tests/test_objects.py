@@ -631,27 +631,36 @@ def test_turn_is_confirmed_by_the_same_turn_in_a_recent_frame():
     assert not seen(10, turn)  # nothing remembered yet
     assert not seen(11, other)
     assert seen(12, turn)  # frame 10's turn
+    about_centroid = np.eye(4)  # a further turn about the region's centroid: same old place
+    about_centroid[:3, :3] = Rotation.from_euler("z", 2 * config.detection.min_motion_degrees, degrees=True).as_matrix()
+    centroid = camera_points.mean(axis=0)
+    about_centroid[:3, 3] = centroid - about_centroid[:3, :3] @ centroid
+    owner._recent_turns = [(12, turn)]
+    assert not seen(13, turn @ about_centroid)  # the same old place, another rotation
+    memory = config.detection.in_place_turn_memory_frames
     owner._recent_turns = []
     assert not seen(20, turn)
-    assert not seen(20 + config.detection.in_place_turn_memory_frames + 1, turn)  # too long ago
+    assert seen(20 + memory, turn)  # just within the memory
+    owner._recent_turns = []
+    assert not seen(30, turn)
+    assert not seen(30 + memory + 1, turn)  # too long ago
 
 
-def test_suspect_segments_give_the_static_keyframe_only_their_inliers():
-    """objects.hold_back_suspects: measurements of this frame's suspect segments that are no
-    static inliers do not become static landmarks; all others do."""
+def test_suspect_segments_give_the_static_keyframe_only_their_inliers(monkeypatch):
+    """objects.hold_back_suspects: points and planes of this frame's suspect segments that are
+    no static inliers do not become static landmarks; all others do."""
     from jsr.pipeline import reconstruct as module
 
     owner = SimpleNamespace(_suspect_segments=[1])
-    segments = SimpleNamespace(segment_of_points=lambda n: np.array([0, 0, 1, 1, 1, -1]))
-    measurements = SimpleNamespace(points=np.zeros(6), planes=np.zeros(0), segments=segments, frame_index=7)
-    original = module.inlier_mask
-    module.inlier_mask = lambda matched, result, n, m: (np.array([True, False, True, False, False, False]), None)
-    try:
-        kept = Reconstructor._without_suspects(owner, measurements, SimpleNamespace(matched=None, result=None),
-                                                np.arange(6))
-    finally:
-        module.inlier_mask = original
-    assert kept.tolist() == [0, 1, 2, 5]
+    segments = SimpleNamespace(segment_of_points=lambda n: np.array([0, 0, 1, 1, 1, -1]),
+                               plane_index=np.array([0, 1, -1]))  # plane 0 is segment 0, plane 1 segment 1
+    measurements = SimpleNamespace(points=np.zeros(6), planes=np.zeros(2), segments=segments, frame_index=7)
+    monkeypatch.setattr(module, "inlier_mask", lambda matched, result, n, m: (
+        np.array([True, False, True, False, False, False]), np.array([False, False])))
+    points, planes = Reconstructor._without_suspects(owner, measurements, SimpleNamespace(matched=None, result=None),
+                                                     np.arange(6), np.arange(2))
+    assert points.tolist() == [0, 1, 2, 5]
+    assert planes.tolist() == [0]
 
 
 def test_landmarks_in_space_seen_empty_are_phantoms():
@@ -725,7 +734,7 @@ class _FrameSegments:
 @pytest.mark.parametrize("violations, grown", [(20, [0, 1]), (5, [0])])
 def test_face_with_few_3d_features_grows_into_its_object_when_it_moved_in(violations, grown):
     """A face next to a tracked object seen at a grazing angle (10 features, 2 with depth)
-    joins the object when at least GROW_MIN_VIOLATION_SHARE of its sampled pixels lie in space
+    joins the object when at least objects.grow_violation_share of its sampled pixels lie in space
     the static keyframes saw empty; a segment like it where they saw a surface does not."""
     from jsr.synth import synth_intrinsics
 

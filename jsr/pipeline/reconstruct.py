@@ -74,8 +74,7 @@ FREE_SPACE_VIEWS = 2  # ... against the latest static keyframes
 MAX_OBJECT_ID = 255  # ownership masks are uint8 images
 SHAPE_CANDIDATES = 4  # surface alignments (best colour agreement first) tried by feature matching
 SURFACE_STRIDE = 2  # object surface samples (shape-based re-identification) use every 2nd pixel and row
-IN_PLACE_TURN_INLIER_FACTOR = 2  # overruling the in-place veto by a rigid turn takes this many times the usual agreeing outliers (or detection.in_place_turn_memory_frames)
-GROW_MIN_VIOLATION_SHARE = 0.3  # a face with few 3D features joins its object when this share of its pixels lies in space seen empty
+IN_PLACE_TURN_INLIER_FACTOR = 2  # overruling the in-place veto by one frame's rigid turn takes this many times the usual agreeing outliers (two frames: see detection.in_place_turn_memory_frames)
 CANDIDATE_DETAIL_FRAMES = 3  # a moving region too poor in 3D points to start a map gets detail keypoints this many frames
 OWNERSHIP_FILL_RADIUS = 3  # px at 640 wide: pixels in no segment (no depth) take the owner of most labelled neighbours
 
@@ -640,17 +639,21 @@ class Reconstructor:
         moved = (stats.matched >= min_features) & (stats.outlier_ratio >= 1.0 - UNSUPPORTED_STATIC_SHARE) & (
             static_count < min_features)
         candidates &= ~seen_static | moved
-        # A face seen at a grazing angle has features but few with depth: nothing says it is
-        # static, and much of it lying in space the static keyframes saw empty says it moved in.
+        # A face seen at a grazing angle has keypoints but few with depth: no static inlier says
+        # it is static, and a good share of it lying in space the static keyframes saw empty
+        # says it moved in. This overrides seen_static: the rest of such a face may agree with
+        # a surface the keyframes saw, the object's own face in the same plane before a jump.
         sampled = violations + consistent
-        three_d = np.array([int(measurements.points.has_depth[np.asarray(i, dtype=np.int64)].sum())
-                            for i in measurements.segments.point_indices])
-        candidates |= (three_d < min_features) & (segment_owner == 0) & (static_count == 0) & (
-            sampled >= self._free_space_min_samples()) & (violations >= GROW_MIN_VIOLATION_SHARE * sampled)
+        features = np.array([len(i) for i in measurements.segments.point_indices])
+        three_d = np.bincount(point_segment[measurements.points.has_depth & (point_segment >= 0)],
+                              minlength=len(measurements.segments))
+        share = self.config.objects.grow_violation_share
+        if share > 0:
+            candidates |= (features >= min_features) & (three_d < min_features) & (segment_owner == 0) & (
+                static_count == 0) & (sampled >= self._free_space_min_samples()) & (violations >= share * sampled)
         if inside is not None:
             # Inside the object's extent and not shown static by its features: the object's own
             # faces, even without reliable 3D features (seen at a grazing angle).
-            features = np.array([len(i) for i in measurements.segments.point_indices])
             candidates |= inside & (segment_owner == 0) & (static_count < min_features) & (
                 static_count <= UNSUPPORTED_STATIC_SHARE * np.maximum(features, 1))
         return grow_region(seeds, candidates, self._adjacency(frame, measurements))
@@ -857,15 +860,18 @@ class Reconstructor:
         return len(found), len(landmarks)
 
     def _in_free_space(self, world_points: np.ndarray) -> np.ndarray:
-        """``(N,)`` bool: which of the ``(N, 3)`` world points one of the latest static
-        keyframes saw through, its whole neighbourhood measured farther away than the point by
-        more than ``max(objects.free_space_margin, objects.free_space_sigmas * sigma_Z)`` (the
-        free-space test's margins; see :class:`~jsr.pipeline.objects.DepthView`)."""
-        through = np.zeros(len(world_points), dtype=bool)
+        """``(N,)`` bool: which of the ``(N, 3)`` world points the latest static keyframes saw
+        through, as :func:`~jsr.pipeline.objects.free_space_violations` judges a pixel: every
+        keyframe that measured depth where the point projects saw its whole neighbourhood
+        farther away than the point by more than ``max(objects.free_space_margin,
+        objects.free_space_sigmas * sigma_Z)`` (sigma_Z of the depth it measured). One keyframe
+        with a poor pose alone does not make a point a phantom."""
         config = self.config.objects
         if not (config.free_space_detection and self.depth_views) or not len(world_points):
-            return through
+            return np.zeros(len(world_points), dtype=bool)
         intr = self.intrinsics
+        covered = np.zeros(len(world_points), dtype=bool)
+        contradicted = np.zeros(len(world_points), dtype=bool)  # a covering view that did not see through it
         for keyframe_id, view in self.depth_views:
             T_w_view = self.static_map.keyframes[keyframe_id].T_map_cam  # after bundle adjustment
             in_view = transform_points(invert_transform(T_w_view), world_points)
@@ -873,14 +879,18 @@ class Reconstructor:
             safe = np.where(z > 1e-3, z, 1.0)
             u = np.round((intr.fx * in_view[:, 0] / safe + intr.cx) / view.stride).astype(np.int64)
             v = np.round((intr.fy * in_view[:, 1] / safe + intr.cy) / view.stride).astype(np.int64)
-            height, width = view.near_depth.shape
+            height, width = view.depth.shape
             inside = (z > 1e-3) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-            nearest = np.zeros(len(z))
+            seen, nearest = np.zeros(len(z)), np.zeros(len(z))
+            seen[inside] = view.depth[v[inside], u[inside]]
             nearest[inside] = view.near_depth[v[inside], u[inside]]
+            measured = inside & (seen > 0)
             margin = np.maximum(config.free_space_margin,
-                                config.free_space_sigmas * self.config.noise.sigma_z_coefficient * z**2)
-            through |= (nearest > 0) & (nearest > z + margin)
-        return through
+                                config.free_space_sigmas * self.config.noise.sigma_z_coefficient * seen**2)
+            through = measured & (nearest > 0) & (nearest > z + margin)
+            covered |= measured
+            contradicted |= measured & ~through
+        return covered & ~contradicted
 
     def _not_in_place(self, measurements: FrameMeasurements, static: StaticRegistration, candidates: list[int],
                       static_inliers: np.ndarray, T_w_c: np.ndarray, keep_unknown: bool) -> list[int]:
@@ -974,9 +984,10 @@ class Reconstructor:
         outliers to decide alone, was also found in one of the last
         ``detection.in_place_turn_memory_frames`` frames. Same turn: it takes the region's
         centroid to within ``detection.min_motion`` of the same old place, and the rotations
-        differ by less than ``detection.min_motion_degrees``. An object that turned and came to
+        differ by at most ``detection.min_motion_degrees``. An object that turned and came to
         rest gives the same turn in every frame; look-alikes and a person walking give a
-        different one each time. The turn is remembered either way."""
+        different one each time. The turn is remembered either way (in the world frame of this
+        frame: a later bundle adjustment moves it by millimetres). Memory counts frame indices."""
         points = measurements.points
         indices = np.concatenate([measurements.segments.point_indices[s] for s in group]).astype(np.int64)
         indices = indices[points.has_depth[indices]]
@@ -1257,9 +1268,9 @@ class Reconstructor:
             return
         points, planes = measurements.points, measurements.planes
         static_points = np.flatnonzero(assignment.point_owner == 0)
-        if self.config.objects.hold_back_suspects and self._suspect_segments and not static.bridged:
-            static_points = self._without_suspects(measurements, static, static_points)
         static_planes = np.flatnonzero(assignment.plane_owner == 0)
+        if self._holding_back() and not static.bridged:
+            static_points, static_planes = self._without_suspects(measurements, static, static_points, static_planes)
         if static.bridged:  # matched to the previous frame, not to the map: all measurements are new
             landmark_of = np.full(len(points), -1, dtype=np.int64)
             plane_landmark_of = np.full(len(planes), -1, dtype=np.int64)
@@ -1275,24 +1286,33 @@ class Reconstructor:
         self._remember_depth(frame, measurements, assignment)
         self.bundle.maybe_start(self.static_map)
 
+    def _holding_back(self) -> bool:
+        """Whether this frame has suspect segments to keep out of a static keyframe
+        (``objects.hold_back_suspects``)."""
+        return bool(self.config.objects.hold_back_suspects and self._suspect_segments)
+
     def _without_suspects(self, measurements: FrameMeasurements, static: StaticRegistration,
-                          point_ids: np.ndarray) -> np.ndarray:
-        """``point_ids`` ``(K,)`` without the measurements of this frame's suspect segments
-        that are no static inliers: segments whose outliers agree on an in-place turn not yet
-        confirmed (:meth:`_rigidly_moved`), and moving regions too poor in 3D points to start
-        a map (:meth:`_detect`).
+                          point_ids: np.ndarray, plane_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``point_ids`` ``(K,)`` and ``plane_ids`` ``(L,)`` without the measurements of this
+        frame's suspect segments that are no static inliers: segments whose outliers agree on
+        an in-place turn not yet confirmed (:meth:`_rigidly_moved`), and moving regions too
+        poor in 3D points to start a map (:meth:`_detect`). :meth:`_remember_depth` leaves
+        their pixels out of the free-space views too.
 
         Why: a small object that turned and moved a few centimetres keeps only 6-9 matched
         outliers. A static keyframe taking its new surface as landmarks would make it static
         in every later frame, so the turn would never be confirmed. Held back, its old
         landmarks stay outliers and nothing of its new place enters the static map."""
-        inliers, _ = inlier_mask(static.matched, static.result, len(measurements.points), len(measurements.planes))
+        point_inliers, plane_inliers = inlier_mask(static.matched, static.result, len(measurements.points),
+                                                   len(measurements.planes))
         point_segment = measurements.segments.segment_of_points(len(measurements.points))
-        held = np.isin(point_segment[point_ids], self._suspect_segments) & ~inliers[point_ids]
-        if held.any():
-            logger.debug("frame %d: %d measurements of suspect segments %s held back from the static keyframe",
-                         measurements.frame_index, int(held.sum()), self._suspect_segments)
-        return point_ids[~held]
+        held = np.isin(point_segment[point_ids], self._suspect_segments) & ~point_inliers[point_ids]
+        plane_segment = segment_of_planes(measurements.segments, len(measurements.planes))
+        held_planes = np.isin(plane_segment[plane_ids], self._suspect_segments) & ~plane_inliers[plane_ids]
+        if held.any() or held_planes.any():
+            logger.debug("frame %d: %d points and %d planes of suspect segments %s held back from the static keyframe",
+                         measurements.frame_index, int(held.sum()), int(held_planes.sum()), self._suspect_segments)
+        return point_ids[~held], plane_ids[~held_planes]
 
     def _remember_depth(self, frame: Frame, measurements: FrameMeasurements, assignment: FrameAssignment) -> None:
         """Keep the static pixels' depth of the new static keyframe (subsampled) for free-space tests."""
@@ -1302,6 +1322,8 @@ class Reconstructor:
         depth = np.array(frame.depth[::stride, ::stride], dtype=np.float32)
         ownership = self._ownership_image(measurements, assignment)[::stride, ::stride]
         depth[ownership > 0] = 0.0  # where objects were, nothing is known about free space
+        if self._holding_back():  # nor where something may have moved to (see _without_suspects)
+            depth[np.isin(measurements.segments.label_image[::stride, ::stride], self._suspect_segments)] = 0.0
         keyframe_id = self.static_map.keyframes[-1].keyframe_id
         self.depth_views.append((keyframe_id, DepthView(depth, self.static_map.keyframes[-1].T_map_cam, stride)))
         del self.depth_views[:-FREE_SPACE_VIEWS]
