@@ -79,7 +79,12 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], help="config override section.key=value")
     parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds jsr runs with (mean reported)")
     args = parser.parse_args()
-    seeds = [int(seed) for seed in args.seeds.split(",")]
+    try:
+        seeds = [int(seed) for seed in args.seeds.split(",") if seed.strip()]
+    except ValueError:
+        parser.error(f"--seeds {args.seeds!r}: give comma-separated integers")
+    if not seeds:
+        parser.error("--seeds: give at least one seed")
     config = load_config(REPO / "configs" / "default.yaml", args.set)
 
     rows = []

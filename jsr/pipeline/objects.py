@@ -430,6 +430,22 @@ class DepthView:
             near = cv2.erode(far, np.ones((size, size), np.uint8))
             self.near_depth = np.where(near < 1e6, near, 0.0).astype(np.float32)
 
+    def sample(self, in_view: np.ndarray, intrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(N, 3)`` points in this view's camera frame projected into it: per point whether
+        it falls in the image in front of the camera, the depth the view measured there and
+        its ``near_depth`` (each ``(N,)``; 0 outside)."""
+        z = in_view[:, 2]
+        ahead = z > 1e-3
+        safe = np.where(ahead, z, 1.0)
+        u = np.round((intrinsics.fx * in_view[:, 0] / safe + intrinsics.cx) / self.stride).astype(np.int64)
+        v = np.round((intrinsics.fy * in_view[:, 1] / safe + intrinsics.cy) / self.stride).astype(np.int64)
+        height, width = self.depth.shape
+        inside = ahead & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        seen, nearest = np.zeros(len(z)), np.zeros(len(z))
+        seen[inside] = self.depth[v[inside], u[inside]]
+        nearest[inside] = self.near_depth[v[inside], u[inside]]
+        return inside, seen, nearest
+
 
 def free_space_violations(
     depth: np.ndarray,
@@ -465,16 +481,7 @@ def free_space_violations(
     camera = np.column_stack([(u - cx) / fx * zs, (v - cy) / fy * zs, zs])
     T_view_cam = np.linalg.inv(view.T_w_c) @ T_w_c
     in_view = camera @ T_view_cam[:3, :3].T + T_view_cam[:3, 3]
-    ahead = in_view[:, 2] > 1e-3
-    safe = np.where(ahead, in_view[:, 2], 1.0)
-    pu = np.round((fx * in_view[:, 0] / safe + cx) / stride).astype(np.int64)
-    pv = np.round((fy * in_view[:, 1] / safe + cy) / stride).astype(np.int64)
-    height, width = view.depth.shape
-    inside = ahead & (pu >= 0) & (pu < width) & (pv >= 0) & (pv < height)
-    seen = np.zeros(len(zs))
-    seen[inside] = view.depth[pv[inside], pu[inside]]
-    nearest = np.zeros(len(zs))
-    nearest[inside] = view.near_depth[pv[inside], pu[inside]]
+    inside, seen, nearest = view.sample(in_view, intrinsics)
     usable = inside & (seen > 0)
     sigma = noise.sigma_z_coefficient * seen**2
     threshold = np.maximum(margin, (noise.inlier_sigmas if sigmas is None else sigmas) * sigma)

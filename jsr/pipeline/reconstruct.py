@@ -869,21 +869,13 @@ class Reconstructor:
         config = self.config.objects
         if not (config.free_space_detection and self.depth_views) or not len(world_points):
             return np.zeros(len(world_points), dtype=bool)
-        intr = self.intrinsics
         covered = np.zeros(len(world_points), dtype=bool)
         contradicted = np.zeros(len(world_points), dtype=bool)  # a covering view that did not see through it
         for keyframe_id, view in self.depth_views:
             T_w_view = self.static_map.keyframes[keyframe_id].T_map_cam  # after bundle adjustment
             in_view = transform_points(invert_transform(T_w_view), world_points)
             z = in_view[:, 2]
-            safe = np.where(z > 1e-3, z, 1.0)
-            u = np.round((intr.fx * in_view[:, 0] / safe + intr.cx) / view.stride).astype(np.int64)
-            v = np.round((intr.fy * in_view[:, 1] / safe + intr.cy) / view.stride).astype(np.int64)
-            height, width = view.depth.shape
-            inside = (z > 1e-3) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-            seen, nearest = np.zeros(len(z)), np.zeros(len(z))
-            seen[inside] = view.depth[v[inside], u[inside]]
-            nearest[inside] = view.near_depth[v[inside], u[inside]]
+            inside, seen, nearest = view.sample(in_view, self.intrinsics)
             measured = inside & (seen > 0)
             margin = np.maximum(config.free_space_margin,
                                 config.free_space_sigmas * self.config.noise.sigma_z_coefficient * seen**2)
