@@ -166,9 +166,12 @@ class ObjectsConfig:
     vacated_window_px: int = 10
     grow_keyframe_ratio: float = 1.0
     reidentify: bool = True
-    shape_reidentify: bool = False
+    shape_reidentify: bool = True
     shape_voxel: float = 0.01
     shape_radius_px: float = 40.0
+    shape_min_fitness: float = 0.9
+    shape_min_constraint: float = 0.015
+    shape_max_color_ratio: float = 2.0
     merge_maps: bool = True
     merge_min_shared_inliers: int = 5
     map_merge_min_inliers: int = 12
@@ -310,6 +313,9 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "objects.shape_voxel": (lambda v: v > 0, "positive"),
     "features.object_detail_margin": (lambda v: v >= 0, "at least 0"),
     "objects.shape_radius_px": (lambda v: v > 0, "positive"),
+    "objects.shape_min_fitness": (lambda v: 0 < v <= 1, "in (0, 1]"),
+    "objects.shape_min_constraint": (lambda v: v >= 0, "non-negative"),
+    "objects.shape_max_color_ratio": (lambda v: v >= 1, "at least 1"),
     "objects.merge_min_shared_inliers": (lambda v: v >= 1, "at least 1"),
     "objects.map_merge_min_inliers": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.free_space_min_pixels": (lambda v: v >= 1, "at least 1"),

@@ -605,6 +605,24 @@ def test_object_that_turned_and_rests_is_detected(resting_turn_sequence, memory_
         assert not cylinder_maps
 
 
+def test_box_turned_to_unseen_sides_keeps_its_map(resting_turn_sequence):
+    """objects.shape_reidentify: at frame 47 the box jumps and shows sides none of its
+    landmarks match (34 matches, 0 inliers); its surface alone re-identifies it, so it keeps
+    one map instead of starting a second."""
+    sequence = open_sequence(resting_turn_sequence, max_frames=50)
+    result = run(resting_turn_sequence, ["objects.shape_reidentify=true"], sequence=sequence)
+    frames = list(result.sequence)
+    box_maps = set()
+    for report in result.reports:
+        labels = labels_of(resting_turn_sequence, frames[report.frame_index])
+        for object_id in report.objects_tracked:
+            given = report.mask == object_id
+            if given.any() and (labels[given] == 1).mean() > 0.5:
+                box_maps.add(object_id)
+    assert len(box_maps) == 1
+    assert box_maps <= set(result.reports[47].objects_tracked) and box_maps <= set(result.reports[49].objects_tracked)
+
+
 def test_turn_is_confirmed_by_the_same_turn_in_a_recent_frame():
     """The remembered turn must move the region to the same old place by the same rotation,
     at most detection.in_place_turn_memory_frames frames earlier."""

@@ -3,7 +3,9 @@
 import numpy as np
 
 from jsr.geometry import make_transform, rotation_about_axis, transform_points
-from jsr.pipeline.surfaces import SurfaceSample, align_surfaces, build_model, sample_surface
+from scipy.spatial import cKDTree
+
+from jsr.pipeline.surfaces import SurfaceSample, align_surfaces, build_model, geometric_constraint, sample_surface
 
 VOXEL = 0.01
 
@@ -83,3 +85,62 @@ def test_sample_surface_keeps_mask_pixels_with_depth():
     sample = sample_surface(depth, color, mask, Intrinsics(), stride=2, voxel=1e-4)
     assert len(sample.points) == 10 * 15  # rows 10..28 step 2, columns 10..38 step 2
     np.testing.assert_allclose(sample.points[:, 2], 1.0)
+
+
+def _cylinder_side(radius=0.06, height=0.25, spacing=0.004, arc_degrees=150.0):
+    """Points ``(N, 3)`` on an arc of a cylinder's side about the z axis, and grey colours."""
+    angles = np.radians(np.arange(-arc_degrees / 2, arc_degrees / 2, np.degrees(spacing / radius)))
+    heights = np.arange(-height / 2, height / 2, spacing)
+    aa, hh = np.meshgrid(angles, heights)
+    points = np.stack([radius * np.cos(aa.ravel()), radius * np.sin(aa.ravel()), hh.ravel()], axis=1)
+    return points, np.full((len(points), 3), 128, dtype=np.uint8)
+
+
+def _constraint_of(points, colors):
+    """geometric_constraint of a surface against itself, seen from a camera on +x+y+z."""
+    T = make_transform(np.eye(3), [0.8, 0.6, 0.7])
+    model = build_model([(T, _view(points, colors, T))], VOXEL)
+    return geometric_constraint(model, model, cKDTree(model.points), np.eye(4), VOXEL)
+
+
+def test_geometric_constraint_tells_a_box_corner_from_sliding_surfaces():
+    box_points, box_colors = _box_faces()
+    corner = _constraint_of(box_points, box_colors)
+    # three faces pin every motion; a cylinder's side turns about its axis, a plane slides
+    cylinder = _constraint_of(*_cylinder_side())
+    plane = box_points[:, 2] == box_points[:, 2].max()
+    flat = _constraint_of(box_points[plane], box_colors[plane])
+    assert corner > 0.03
+    assert cylinder < 0.005 and flat < 0.005
+
+
+def test_shape_alone_needs_a_complete_pinned_unrivalled_fit_in_the_objects_own_colours():
+    """Reconstructor._shape_alone: the rules that let a surface alignment re-identify a lost
+    object without landmark matches."""
+    from types import SimpleNamespace
+
+    from jsr.config import load_config
+    from jsr.pipeline.reconstruct import Reconstructor
+    from jsr.pipeline.surfaces import Alignment
+
+    config = load_config(None)
+    owner = SimpleNamespace(config=config, _surface_self_residual=lambda object_map: 0.05)
+    camera = make_transform(np.eye(3), [0.8, 0.6, 0.7])
+    box = build_model([(camera, _view(*_box_faces(), camera))], VOXEL)
+    turned = make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.pi), np.zeros(3))
+    shifted = make_transform(np.eye(3), [0.03, 0.0, 0.0])
+
+    def alone(alignments, region=box, model=box):
+        return Reconstructor._shape_alone(owner, SimpleNamespace(object_id=1), region, model, alignments)
+
+    right = Alignment(np.eye(4), 0.98, 0.07)
+    assert alone([right]) is right
+    assert alone([Alignment(np.eye(4), 0.8, 0.07)]) is None  # too little of the region on the model
+    assert alone([Alignment(np.eye(4), 0.98, 0.12)]) is None  # 2.4 times the object's own colour residual
+    assert alone([right, Alignment(turned, 0.95, 0.09)]) is None  # a turned fit nearly as good: ambiguous
+    assert alone([right, Alignment(turned, 0.95, 0.2)]) is right  # the turned fit's colours disagree
+    assert alone([right, Alignment(shifted, 0.97, 0.07)]) is right  # 3 cm apart: the same fit
+    cylinder = build_model([(camera, _view(*_cylinder_side(), camera))], VOXEL)
+    assert alone([right], cylinder, cylinder) is None  # turns about its axis: shape does not pin it
+    owner._surface_self_residual = lambda object_map: None
+    assert alone([right]) is None  # one view of the object: nothing to compare colours with

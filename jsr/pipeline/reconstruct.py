@@ -62,8 +62,18 @@ from jsr.pipeline.objects import (
     unsupported_segments,
     UNSUPPORTED_STATIC_SHARE,
 )
-from jsr.pipeline.registration import RegistrationResult, register
-from jsr.pipeline.surfaces import SurfaceModel, SurfaceSample, align_surfaces, build_model, region_model, sample_surface
+from jsr.pipeline.registration import RegistrationResult, evaluate_pose, register
+from jsr.pipeline.surfaces import (
+    Alignment,
+    SurfaceModel,
+    SurfaceSample,
+    align_surfaces,
+    build_model,
+    color_residual,
+    geometric_constraint,
+    region_model,
+    sample_surface,
+)
 from jsr.pipeline.vlad import SegmentIndex, VladVocabulary
 
 logger = logging.getLogger(__name__)
@@ -74,9 +84,20 @@ FREE_SPACE_VIEWS = 2  # ... against the latest static keyframes
 MAX_OBJECT_ID = 255  # ownership masks are uint8 images
 SHAPE_CANDIDATES = 4  # surface alignments (best colour agreement first) tried by feature matching
 SURFACE_STRIDE = 2  # object surface samples (shape-based re-identification) use every 2nd pixel and row
+SHAPE_RIVAL_FITNESS_GAP = 0.1  # a surface fit this close in fitness to the chosen one ...
+SHAPE_RIVAL_COLOR_RATIO = 1.5  # ... and within this factor of its colour residual makes the surface ambiguous
+SHAPE_MODE_METRES, SHAPE_MODE_DEGREES = 0.1, 15.0  # fits closer than this are one fit, not rivals
+SELF_RESIDUAL_VIEWS = 6  # an object's latest keyframe samples that measure how its own views agree
 IN_PLACE_TURN_INLIER_FACTOR = 2  # overruling the in-place veto by one frame's rigid turn takes this many times the usual agreeing outliers (two frames: see detection.in_place_turn_memory_frames)
 CANDIDATE_DETAIL_FRAMES = 3  # a moving region too poor in 3D points to start a map gets detail keypoints this many frames
 OWNERSHIP_FILL_RADIUS = 3  # px at 640 wide: pixels in no segment (no depth) take the owner of most labelled neighbours
+
+
+def _same_mode(T_a: np.ndarray, T_b: np.ndarray) -> bool:
+    """Whether two ``(4, 4)`` alignments are one fit (within SHAPE_MODE_METRES and _DEGREES)."""
+    difference = np.linalg.inv(T_a) @ T_b
+    return bool(np.linalg.norm(difference[:3, 3]) < SHAPE_MODE_METRES
+                and np.degrees(rotation_angle(difference[:3, :3])) < SHAPE_MODE_DEGREES)
 
 
 def _pixel_box(pixels: np.ndarray) -> tuple[int, int, int, int]:
@@ -1104,7 +1125,11 @@ class Reconstructor:
         for prediction-based matching of the region's keypoints with the object's landmarks
         (``objects.shape_radius_px``). The registration with most inliers wins if it succeeds
         with at least ``ransac.min_inliers`` inliers and stays near its prediction (20 cm, 30
-        degrees): the landmarks confirm the shape, which alone fits a box four ways."""
+        degrees): the landmarks confirm the shape, which alone fits a box four ways.
+
+        A jump that turns the object far shows it from sides whose landmarks no longer match
+        (SIFT does not survive a 50-degree change of view), so when no landmarks confirm any
+        alignment, one alignment alone may still decide (:meth:`_shape_alone`)."""
         config = self.config.objects
         region_mask = np.isin(measurements.segments.label_image, group)
         sample = sample_surface(frame.depth, frame.color, region_mask, self.intrinsics, SURFACE_STRIDE,
@@ -1113,12 +1138,16 @@ class Reconstructor:
         if region is None:
             return False
         best = None
+        shape_alone = []  # (object map, alignment) that the surface alone supports
         for object_map in lost:
             model = self._surface_model(object_map)
             if model is None:
                 continue
             landmarks = np.flatnonzero(object_map.points.active)
             alignments = align_surfaces(region, model, config.shape_voxel, self.objects_rng)
+            alone = self._shape_alone(object_map, region, model, alignments)
+            if alone is not None:
+                shape_alone.append((object_map, alone))
             logger.debug("frame %d: region %s (%d surface points) vs object %d (%d): %d alignments",
                          measurements.frame_index, group, len(region.points), object_map.object_id,
                          len(model.points), len(alignments))
@@ -1142,6 +1171,20 @@ class Reconstructor:
                     continue
                 if best is None or result.num_inliers > best[3].num_inliers:
                     best = (object_map, T_o_c, matched, result)
+        if best is None and len(shape_alone) == 1:  # two lost objects fitting as well: neither is trusted
+            object_map, alignment = shape_alone[0]
+            T_o_c = alignment.T_model_region
+            matched = match_frame_guided(measurements, object_map, np.flatnonzero(object_map.points.active), T_o_c,
+                                         self.intrinsics, self.config, self._focal_length,
+                                         point_measurements=group_points, radius_px=config.shape_radius_px)
+            # the pose is the surface's; its landmark matches only say which features it keeps
+            result = dataclasses.replace(evaluate_pose(T_o_c, matched.correspondences, self.config.ransac,
+                                                       self.config.noise), success=True, reason="")
+            logger.info("frame %d: moving region %s is object %d again (its surface alone: fitness %.2f, colour "
+                        "residual %.3f)", measurements.frame_index, group, object_map.object_id, alignment.fitness,
+                        alignment.color_residual)
+            self._claim_region(measurements, group, outcomes[object_map.object_id], matched, result, assignment)
+            return True
         if best is None:
             return False
         object_map, _, matched, result = best
@@ -1150,6 +1193,58 @@ class Reconstructor:
                     result.num_matches)
         self._claim_region(measurements, group, outcomes[object_map.object_id], matched, result, assignment)
         return True
+
+    def _shape_alone(self, object_map: ObjectMap, region: SurfaceModel, model: SurfaceModel,
+                     alignments: list[Alignment]) -> Alignment | None:
+        """The alignment that the region's surface alone makes certain, or None. It must
+        - cover the model: at least ``objects.shape_min_fitness`` of the region on its surface;
+        - be pinned by shape (:func:`~jsr.pipeline.surfaces.geometric_constraint` at least
+          ``objects.shape_min_constraint``): colour tells a box's four fits apart, but is not
+          trusted to fix a turn about a cylinder's axis;
+        - agree in colour as the object's own views agree with each other: residual at most
+          ``objects.shape_max_color_ratio`` times :meth:`_surface_self_residual` (measured:
+          own views 0.045-0.06, right fits 1.3-1.7 times that, a box turned over 2.4 times);
+        - have no rival: no other fit as complete (fitness within 0.1) with a colour residual
+          within 1.5 times its own.
+        """
+        config = self.config.objects
+        if not alignments:
+            return None
+        complete = [a for a in alignments if a.fitness >= config.shape_min_fitness]
+        if not complete:
+            return None
+        chosen = complete[0]  # alignments come best colour agreement first
+        rivals = [a for a in alignments if a is not chosen and a.fitness >= chosen.fitness - SHAPE_RIVAL_FITNESS_GAP
+                  and a.color_residual < SHAPE_RIVAL_COLOR_RATIO * chosen.color_residual
+                  and not _same_mode(a.T_model_region, chosen.T_model_region)]
+        if rivals:
+            return None
+        self_residual = self._surface_self_residual(object_map)
+        if self_residual is None or chosen.color_residual > config.shape_max_color_ratio * self_residual:
+            return None
+        constraint = geometric_constraint(region, model, cKDTree(model.points), chosen.T_model_region,
+                                          config.shape_voxel)
+        logger.debug("object %d: surface fit %.2f, colour residual %.3f (own views %.3f), constraint %.3f",
+                     object_map.object_id, chosen.fitness, chosen.color_residual, self_residual, constraint)
+        if constraint < config.shape_min_constraint:
+            return None
+        return chosen
+
+    def _surface_self_residual(self, object_map: ObjectMap) -> float | None:
+        """Median colour residual of each of the object's last keyframe surface samples against
+        the model of its other keyframes, at their bundle-adjusted poses: how well the object's
+        own views agree (noise, shading). None with fewer than two samples."""
+        voxel = self.config.objects.shape_voxel
+        views = [(keyframe.T_map_cam, self.object_surfaces.get(keyframe.frame_index, {}).get(object_map.object_id))
+                 for keyframe in object_map.keyframes]
+        views = [view for view in views if view[1] is not None and len(view[1].points)][-SELF_RESIDUAL_VIEWS:]
+        residuals = []
+        for k, (T_model_camera, sample) in enumerate(views):
+            others = build_model([view for j, view in enumerate(views) if j != k], voxel)
+            own = region_model(sample, voxel)
+            if others is not None and own is not None:
+                residuals.append(color_residual(own, others, cKDTree(others.points), T_model_camera, voxel))
+        return float(np.median(residuals)) if residuals else None
 
     def _claim_region(self, measurements: FrameMeasurements, group: list[int], outcome: ObjectTrackingResult,
                       matched: MatchedFrame, result: RegistrationResult, assignment: FrameAssignment) -> None:

@@ -6,13 +6,13 @@ the maps of one box). Its *shape* still fits the object's surface, seen from ano
 subsampled coloured surface per object keyframe and aligns a region's surface to an object's
 model: FPFH correspondences (Rusu et al. 2009, via Open3D), a seeded RANSAC of our own (so
 runs are reproducible), the region's 180-degree self-symmetries (a box face fits its model
-four ways), and point-to-plane ICP. The candidate alignments it returns are only pose
-*predictions*: the reconstructor accepts one only when the object's landmarks confirm it by
-prediction-based feature matching and registration.
-
-Experimental and off by default (``objects.shape_reidentify``): on the jump benchmarks the
-alignments it finds are not yet confirmed by enough landmark matches (objects there carry
-20-70 landmarks, and FPFH on a near-cube gives many look-alike fits).
+four ways), and point-to-plane ICP. The candidate alignments it returns are pose
+*predictions*: the reconstructor accepts one when the object's landmarks confirm it by
+prediction-based feature matching and registration, or, when no landmarks match (the jump
+showed the object from a view too far from its map's for SIFT), when the surface alone is
+certain: nearly all of the region on the model, a shape that pins the fit
+(:func:`geometric_constraint`), colours that agree as the object's own views agree, and no
+rival fit (``objects.shape_*``).
 
 Frames: ``camera`` is the frame of the view a sample was taken in; ``model`` is the object
 map's frame. Transforms are ``(4, 4)`` and map points of the right-hand frame into the left.
@@ -216,7 +216,7 @@ class Alignment:
 
 
 def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng: np.random.Generator,
-                   iterations: int = 4000, hypotheses: int = 6, min_fitness: float = 0.3,
+                   iterations: int = 20000, hypotheses: int = 6, min_fitness: float = 0.3,
                    max_candidates: int = 8) -> list[Alignment]:
     """Candidate ``T_model_region`` alignments of ``region`` onto ``model``, best fit first.
 
@@ -298,6 +298,28 @@ def color_residual(region: SurfaceModel, model: SurfaceModel, model_tree: cKDTre
     if not on.any():
         return 1.0
     return float(np.abs(region.colors[on] - model.colors[nearest[on]]).mean())
+
+
+def geometric_constraint(region: SurfaceModel, model: SurfaceModel, model_tree: cKDTree, T: np.ndarray,
+                         voxel: float) -> float:
+    """How well the region's shape alone pins the alignment ``T`` (model <- region): the
+    smallest eigenvalue, per point, of the point-to-plane information matrix of the region
+    points on the model (rows ``[(p - c) x n / L, n]`` for aligned points ``p``, model
+    normals ``n``, centroid ``c``, RMS radius ``L``; the stability measure of Gelfand et al.
+    2003). Near 0 when some rigid motion slides the surface along itself: a cylinder's side
+    turned about its axis, a plane, two faces of a box along their edge. A box seen on three
+    faces gives 0.03-0.08. 0.0 when fewer than 10 region points lie on the model.
+    """
+    aligned = transform_points(T, region.points)
+    distance, nearest = model_tree.query(aligned, distance_upper_bound=1.5 * voxel)
+    on = np.isfinite(distance)
+    if on.sum() < 10:
+        return 0.0
+    p, n = aligned[on], model.normals[nearest[on]]
+    centre = p.mean(axis=0)
+    radius = float(np.sqrt(np.mean(np.sum((p - centre) ** 2, axis=1))))
+    jacobian = np.hstack([np.cross(p - centre, n) / max(radius, 1e-9), n])
+    return float(np.linalg.eigvalsh(jacobian.T @ jacobian)[0] / len(p))
 
 
 def _half_turn(axis: np.ndarray, centre: np.ndarray) -> np.ndarray:
