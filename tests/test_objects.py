@@ -18,7 +18,7 @@ from jsr.pipeline.objects import (
     free_space_violations,
     grow_region,
 )
-from jsr.pipeline.reconstruct import Reconstructor
+from jsr.pipeline.reconstruct import TURN_MEMORY_DEGREES_FACTOR, Reconstructor
 from jsr.synth import SynthOptions, generate_sequence
 
 WIDTH, HEIGHT = 320, 240
@@ -650,11 +650,18 @@ def test_turn_is_confirmed_by_the_same_turn_in_a_recent_frame():
     assert not seen(11, other)
     assert seen(12, turn)  # frame 10's turn
     about_centroid = np.eye(4)  # a further turn about the region's centroid: same old place
-    about_centroid[:3, :3] = Rotation.from_euler("z", 2 * config.detection.min_motion_degrees, degrees=True).as_matrix()
     centroid = camera_points.mean(axis=0)
-    about_centroid[:3, 3] = centroid - about_centroid[:3, :3] @ centroid
+    tolerance = TURN_MEMORY_DEGREES_FACTOR * config.detection.min_motion_degrees  # rotations fitted to few points
+
+    def turned_about_centroid(degrees):
+        about_centroid[:3, :3] = Rotation.from_euler("z", degrees, degrees=True).as_matrix()
+        about_centroid[:3, 3] = centroid - about_centroid[:3, :3] @ centroid
+        return turn @ about_centroid
+
     owner._recent_turns = [(12, turn)]
-    assert not seen(13, turn @ about_centroid)  # the same old place, another rotation
+    assert not seen(13, turned_about_centroid(1.5 * tolerance))  # the same old place, another rotation
+    owner._recent_turns = [(12, turn)]
+    assert seen(13, turned_about_centroid(0.75 * tolerance))  # the same turn, fitted again to a few points
     memory = config.detection.in_place_turn_memory_frames
     owner._recent_turns = []
     assert not seen(20, turn)

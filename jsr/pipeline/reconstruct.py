@@ -88,6 +88,8 @@ SHAPE_RIVAL_FITNESS_GAP = 0.1  # a surface fit this close in fitness to the chos
 SHAPE_RIVAL_COLOR_RATIO = 1.5  # ... and within this factor of its colour residual makes the surface ambiguous
 SHAPE_MODE_METRES, SHAPE_MODE_DEGREES = 0.1, 15.0  # fits closer than this are one fit, not rivals
 SELF_RESIDUAL_VIEWS = 6  # an object's latest keyframe samples that measure how its own views agree
+# two frames' rotations fitted to 5-15 points each differ by a few degrees (synth_two seed 3: 3.2)
+TURN_MEMORY_DEGREES_FACTOR = 2
 IN_PLACE_TURN_INLIER_FACTOR = 2  # overruling the in-place veto by one frame's rigid turn takes this many times the usual agreeing outliers (two frames: see detection.in_place_turn_memory_frames)
 CANDIDATE_DETAIL_FRAMES = 3  # a moving region too poor in 3D points to start a map gets detail keypoints this many frames
 OWNERSHIP_FILL_RADIUS = 3  # px at 640 wide: pixels in no segment (no depth) take the owner of most labelled neighbours
@@ -983,7 +985,7 @@ class Reconstructor:
             if min_turn_degrees is not None and motion.num_inliers < IN_PLACE_TURN_INLIER_FACTOR * usual_inliers:
                 seen = detection.in_place_turn_memory_frames > 0 and self._turn_seen_before(
                     measurements, group, static.result.transformation, motion.transformation)
-                if not (seen and motion.num_inliers >= usual_inliers):
+                if not seen:
                     # not confirmed (yet): its new place stays out of the static map meanwhile
                     self._suspect_segments.extend(group)
                     continue
@@ -997,7 +999,9 @@ class Reconstructor:
         outliers to decide alone, was also found in one of the last
         ``detection.in_place_turn_memory_frames`` frames. Same turn: it takes the region's
         centroid to within ``detection.min_motion`` of the same old place, and the rotations
-        differ by at most ``detection.min_motion_degrees``. An object that turned and came to
+        differ by at most ``TURN_MEMORY_DEGREES_FACTOR`` times ``detection.min_motion_degrees``
+        (each is fitted to as few as ``detection.min_segment_features`` points, and two such
+        frames together hold the usual agreeing outliers). An object that turned and came to
         rest gives the same turn in every frame; look-alikes and a person walking give a
         different one each time. The turn is remembered either way (in the world frame of this
         frame: a later bundle adjustment moves it by millimetres). Memory counts frame indices."""
@@ -1020,7 +1024,7 @@ class Reconstructor:
             earlier_old_place = transform_points(earlier_motion, centroid[None])[0]
             difference = np.degrees(rotation_angle(earlier_motion[:3, :3].T @ motion[:3, :3]))
             if np.linalg.norm(old_place - earlier_old_place) <= detection.min_motion \
-                    and difference <= detection.min_motion_degrees:
+                    and difference <= TURN_MEMORY_DEGREES_FACTOR * detection.min_motion_degrees:
                 seen = True
                 break
         self._recent_turns.append((frame_index, motion))

@@ -216,7 +216,7 @@ class Alignment:
 
 
 def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng: np.random.Generator,
-                   iterations: int = 20000, hypotheses: int = 6, min_fitness: float = 0.3,
+                   iterations: int = 20000, hypotheses: int = 12, min_fitness: float = 0.3,
                    max_candidates: int = 8) -> list[Alignment]:
     """Candidate ``T_model_region`` alignments of ``region`` onto ``model``, best fit first.
 
@@ -224,7 +224,8 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
     (triangles whose side lengths disagree by over 10% are skipped) and keeps the
     ``hypotheses`` distinct alignments most pairs agree with. Each is also tried turned by 180 degrees about the
     axes of the aligned region (its near-symmetries: features must tell them apart), then
-    refined by ICP. Returned: alignments with at least ``min_fitness`` of the region on the
+    refined by point-to-plane ICP, and each distinct fit covering ``min_fitness`` of the
+    region once more by coloured ICP. Returned: alignments with at least ``min_fitness`` of the region on the
     model surface, at most ``max_candidates``, no two within 2 cm and 10 degrees, ordered by
     their colour residual.
     """
@@ -266,6 +267,7 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
     tree = cKDTree(model.points)
     model_turns = _symmetry_axes(model.points, model.normals)
     candidates: list[tuple[float, np.ndarray]] = []
+    refined_from: list[np.ndarray] = []  # point-to-plane fits already refined by coloured ICP
     for index in order:
         T = make_transform(rotations[index], translations[index])
         aligned = transform_points(T, region.points)
@@ -273,7 +275,13 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
         starts = [T] + [_half_turn(axis, centre) @ T
                         for axis, centre in _symmetry_axes(aligned, aligned_normals) + model_turns]
         for start in starts:
-            refined = _colored_icp(region, model, _icp(region, model, tree, start, voxel), voxel)
+            coarse = _icp(region, model, tree, start, voxel)
+            if fitness(region, tree, coarse, voxel) < min_fitness:
+                continue  # not a fit: the slower coloured ICP (most of the time here) would not make it one
+            if any(_close(coarse, other, 0.05, 20.0) for other in refined_from):
+                continue  # many starts converge to one fit (within 5 cm and 20 degrees): refine it once
+            refined_from.append(coarse)
+            refined = _colored_icp(region, model, coarse, voxel)
             score = fitness(region, tree, refined, voxel)
             if score >= min_fitness:
                 candidates.append((score, refined))
