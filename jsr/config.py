@@ -315,7 +315,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "objects.shape_radius_px": (lambda v: v > 0, "positive"),
     "objects.shape_min_fitness": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "objects.shape_min_constraint": (lambda v: v >= 0, "non-negative"),
-    "objects.shape_max_color_ratio": (lambda v: v >= 1, "at least 1"),
+    "objects.shape_max_color_ratio": (lambda v: v == 0 or v >= 1, "0 (only fits that landmarks confirm) or at least 1"),
     "objects.merge_min_shared_inliers": (lambda v: v >= 1, "at least 1"),
     "objects.map_merge_min_inliers": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.free_space_min_pixels": (lambda v: v >= 1, "at least 1"),

@@ -574,7 +574,7 @@ def test_moving_region_too_poor_to_start_gets_detail_boxes(jump_sequence):
 
 @pytest.fixture(scope="module")
 def resting_turn_sequence(tmp_path_factory):
-    """Seed 3 of two jumping objects (60 frames; the tests use the first 23): at frame 19 the
+    """Seed 3 of two jumping objects (60 frames; the tests use the first 23 or 50): at frame 19 the
     cylinder (18 cm across) turns 35 degrees about its axis and comes to rest 8 cm away. Only
     6-9 of its static landmarks are matched as outliers per frame, all found again near their
     projections."""
@@ -610,7 +610,7 @@ def test_box_turned_to_unseen_sides_keeps_its_map(resting_turn_sequence):
     landmarks match (34 matches, 0 inliers); its surface alone re-identifies it, so it keeps
     one map instead of starting a second."""
     sequence = open_sequence(resting_turn_sequence, max_frames=50)
-    result = run(resting_turn_sequence, ["objects.shape_reidentify=true"], sequence=sequence)
+    result = run(resting_turn_sequence, sequence=sequence)  # objects.shape_reidentify is on by default
     frames = list(result.sequence)
     box_maps = set()
     for report in result.reports:
@@ -621,6 +621,16 @@ def test_box_turned_to_unseen_sides_keeps_its_map(resting_turn_sequence):
                 box_maps.add(object_id)
     assert len(box_maps) == 1
     assert box_maps <= set(result.reports[47].objects_tracked) and box_maps <= set(result.reports[49].objects_tracked)
+    # and at the right pose: one constant offset explains the frames before and after the jump
+    true_poses, _ = true_object_poses(resting_turn_sequence)  # object 1 is the box
+    _, gt_cameras = result.sequence.groundtruth
+    box = next(m for m in result.reconstructor.object_maps if m.object_id in box_maps)
+    frames = [index for index, _, _ in box.trajectory]
+    assert min(frames) < 40 and max(frames) == 49
+    estimated = np.array([T_w_o for _, _, T_w_o in box.trajectory])
+    cameras = np.array([result.reports[i].T_w_c for i in frames])
+    error = object_pose_error(cameras, estimated, gt_cameras[frames], true_poses[frames])
+    assert error.translation_rmse_cm < 2.0 and error.rotation_rmse_deg < 2.0
 
 
 def test_turn_is_confirmed_by_the_same_turn_in_a_recent_frame():

@@ -136,7 +136,8 @@ def test_shape_alone_needs_a_complete_pinned_unrivalled_fit_in_the_objects_own_c
     right = Alignment(np.eye(4), 0.98, 0.07)
     assert alone([right]) is right
     assert alone([Alignment(np.eye(4), 0.8, 0.07)]) is None  # too little of the region on the model
-    assert alone([Alignment(np.eye(4), 0.98, 0.12)]) is None  # 2.4 times the object's own colour residual
+    too_colourful = 1.2 * config.objects.shape_max_color_ratio * 0.05
+    assert alone([Alignment(np.eye(4), 0.98, too_colourful)]) is None  # beyond the object's own views' agreement
     assert alone([right, Alignment(turned, 0.95, 0.09)]) is None  # a turned fit nearly as good: ambiguous
     assert alone([right, Alignment(turned, 0.95, 0.2)]) is right  # the turned fit's colours disagree
     assert alone([right, Alignment(shifted, 0.97, 0.07)]) is right  # 3 cm apart: the same fit
@@ -144,3 +145,20 @@ def test_shape_alone_needs_a_complete_pinned_unrivalled_fit_in_the_objects_own_c
     assert alone([right], cylinder, cylinder) is None  # turns about its axis: shape does not pin it
     owner._surface_self_residual = lambda object_map: None
     assert alone([right]) is None  # one view of the object: nothing to compare colours with
+    owner._surface_self_residual = lambda object_map: 0.05
+    owner.config = load_config(None, ["objects.shape_max_color_ratio=0"])
+    assert alone([right]) is None  # switched off: only fits that landmarks confirm
+
+
+def test_same_placement_compares_alignments_at_the_region():
+    """Two alignments of a region 1.2 m in front of its camera (the region frame's origin):
+    an 8-degree turn about the region is a small change, though it moves the camera 17 cm; a
+    turn about the camera moves the region far."""
+    from jsr.pipeline.surfaces import same_placement
+
+    centre = np.array([0.0, 0.0, 1.2])
+    turn = rotation_about_axis([0.0, 1.0, 0.0], np.radians(8))
+    about_region = make_transform(turn, centre - turn @ centre)
+    assert same_placement(np.eye(4), about_region, centre, 0.1, 15.0)
+    assert not same_placement(np.eye(4), make_transform(rotation_about_axis([0.0, 1.0, 0.0], np.radians(14)),
+                                                         np.zeros(3)), centre, 0.1, 15.0)  # 29 cm at the region

@@ -62,7 +62,7 @@ from jsr.pipeline.objects import (
     unsupported_segments,
     UNSUPPORTED_STATIC_SHARE,
 )
-from jsr.pipeline.registration import RegistrationResult, evaluate_pose, register
+from jsr.pipeline.registration import RegistrationResult, register, surface_pose_result
 from jsr.pipeline.surfaces import (
     Alignment,
     SurfaceModel,
@@ -70,8 +70,10 @@ from jsr.pipeline.surfaces import (
     align_surfaces,
     build_model,
     color_residual,
+    fitness,
     geometric_constraint,
     region_model,
+    same_placement,
     sample_surface,
 )
 from jsr.pipeline.vlad import SegmentIndex, VladVocabulary
@@ -86,20 +88,15 @@ SHAPE_CANDIDATES = 4  # surface alignments (best colour agreement first) tried b
 SURFACE_STRIDE = 2  # object surface samples (shape-based re-identification) use every 2nd pixel and row
 SHAPE_RIVAL_FITNESS_GAP = 0.1  # a surface fit this close in fitness to the chosen one ...
 SHAPE_RIVAL_COLOR_RATIO = 1.5  # ... and within this factor of its colour residual makes the surface ambiguous
-SHAPE_MODE_METRES, SHAPE_MODE_DEGREES = 0.1, 15.0  # fits closer than this are one fit, not rivals
+SHAPE_MODE_METRES, SHAPE_MODE_DEGREES = 0.1, 15.0  # fits closer than this (at the region) are one fit, not rivals
+SHAPE_CONFIRM_METRES, SHAPE_CONFIRM_DEGREES = 0.2, 30.0  # landmarks confirm a surface fit within this of it
+SELF_RESIDUAL_MIN_OVERLAP = 0.5  # own views compared only where this share of one lies on the others
 SELF_RESIDUAL_VIEWS = 6  # an object's latest keyframe samples that measure how its own views agree
 # two frames' rotations fitted to 5-15 points each differ by a few degrees (synth_two seed 3: 3.2)
 TURN_MEMORY_DEGREES_FACTOR = 2
 IN_PLACE_TURN_INLIER_FACTOR = 2  # overruling the in-place veto by one frame's rigid turn takes this many times the usual agreeing outliers (two frames: see detection.in_place_turn_memory_frames)
 CANDIDATE_DETAIL_FRAMES = 3  # a moving region too poor in 3D points to start a map gets detail keypoints this many frames
 OWNERSHIP_FILL_RADIUS = 3  # px at 640 wide: pixels in no segment (no depth) take the owner of most labelled neighbours
-
-
-def _same_mode(T_a: np.ndarray, T_b: np.ndarray) -> bool:
-    """Whether two ``(4, 4)`` alignments are one fit (within SHAPE_MODE_METRES and _DEGREES)."""
-    difference = np.linalg.inv(T_a) @ T_b
-    return bool(np.linalg.norm(difference[:3, 3]) < SHAPE_MODE_METRES
-                and np.degrees(rotation_angle(difference[:3, :3])) < SHAPE_MODE_DEGREES)
 
 
 def _pixel_box(pixels: np.ndarray) -> tuple[int, int, int, int]:
@@ -952,7 +949,8 @@ class Reconstructor:
             subset = matched.correspondences.subset(point3d=rows, point2d=np.zeros(0, dtype=np.int64),
                                                     plane=np.zeros(0, dtype=np.int64))
             usual_inliers = max(self.config.detection.min_segment_features, self.config.ransac.min_inliers)
-            # a turn is remembered (and held back) from fewer agreeing outliers than confirm it
+            # a turn is remembered (and held back) from min_segment_features agreeing outliers; one
+            # frame alone decides it with twice the usual, two frames with the same turn with that many each
             ransac = dataclasses.replace(self.config.ransac, min_matches=self.config.detection.min_segment_features,
                                          min_inliers=usual_inliers if min_turn_degrees is None else
                                          self.config.detection.min_segment_features, min_inlier_ratio=0.5)
@@ -1142,16 +1140,15 @@ class Reconstructor:
         if region is None:
             return False
         best = None
-        shape_alone = []  # (object map, alignment) that the surface alone supports
+        fits = []  # (object map, its surface model, the alignments): for the surface-alone decision
+        landmarks_disagree = False  # landmarks registered the region, away from every surface fit
         for object_map in lost:
             model = self._surface_model(object_map)
             if model is None:
                 continue
             landmarks = np.flatnonzero(object_map.points.active)
             alignments = align_surfaces(region, model, config.shape_voxel, self.objects_rng)
-            alone = self._shape_alone(object_map, region, model, alignments)
-            if alone is not None:
-                shape_alone.append((object_map, alone))
+            fits.append((object_map, model, alignments))
             logger.debug("frame %d: region %s (%d surface points) vs object %d (%d): %d alignments",
                          measurements.frame_index, group, len(region.points), object_map.object_id,
                          len(model.points), len(alignments))
@@ -1170,20 +1167,25 @@ class Reconstructor:
                              object_map.object_id, result.num_inliers, result.num_matches)
                 if not result.success or result.num_inliers < self.config.ransac.min_inliers:
                     continue
-                offset = np.linalg.inv(T_o_c) @ result.transformation
-                if np.linalg.norm(offset[:3, 3]) > 0.2 or np.degrees(rotation_angle(offset[:3, :3])) > 30:
+                if not same_placement(T_o_c, result.transformation, region.points.mean(axis=0),
+                                      SHAPE_CONFIRM_METRES, SHAPE_CONFIRM_DEGREES):
+                    landmarks_disagree = True
                     continue
                 if best is None or result.num_inliers > best[3].num_inliers:
                     best = (object_map, T_o_c, matched, result)
-        if best is None and len(shape_alone) == 1:  # two lost objects fitting as well: neither is trusted
+        shape_alone = [] if best is not None or landmarks_disagree else [
+            (object_map, alone) for object_map, model, alignments in fits
+            if (alone := self._shape_alone(object_map, region, model, alignments)) is not None]
+        if len(shape_alone) == 1:  # two lost objects fitting as well: neither is trusted
             object_map, alignment = shape_alone[0]
             T_o_c = alignment.T_model_region
             matched = match_frame_guided(measurements, object_map, np.flatnonzero(object_map.points.active), T_o_c,
                                          self.intrinsics, self.config, self._focal_length,
                                          point_measurements=group_points, radius_px=config.shape_radius_px)
-            # the pose is the surface's; its landmark matches only say which features it keeps
-            result = dataclasses.replace(evaluate_pose(T_o_c, matched.correspondences, self.config.ransac,
-                                                       self.config.noise), success=True, reason="")
+            # The pose is the surface's. Landmark matches that agree with it by chance (too few
+            # to register) would tie old landmarks to wrong measurements: none is kept, and the
+            # region's features become new landmarks of the object.
+            result = surface_pose_result(T_o_c, matched.correspondences)
             logger.info("frame %d: moving region %s is object %d again (its surface alone: fitness %.2f, colour "
                         "residual %.3f)", measurements.frame_index, group, object_map.object_id, alignment.fitness,
                         alignment.color_residual)
@@ -1220,9 +1222,12 @@ class Reconstructor:
         chosen = complete[0]  # alignments come best colour agreement first
         rivals = [a for a in alignments if a is not chosen and a.fitness >= chosen.fitness - SHAPE_RIVAL_FITNESS_GAP
                   and a.color_residual < SHAPE_RIVAL_COLOR_RATIO * chosen.color_residual
-                  and not _same_mode(a.T_model_region, chosen.T_model_region)]
+                  and not same_placement(a.T_model_region, chosen.T_model_region, region.points.mean(axis=0),
+                                         SHAPE_MODE_METRES, SHAPE_MODE_DEGREES)]
         if rivals:
             return None
+        if config.shape_max_color_ratio <= 0:
+            return None  # only fits that landmarks confirm
         self_residual = self._surface_self_residual(object_map)
         if self_residual is None or chosen.color_residual > config.shape_max_color_ratio * self_residual:
             return None
@@ -1237,7 +1242,9 @@ class Reconstructor:
     def _surface_self_residual(self, object_map: ObjectMap) -> float | None:
         """Median colour residual of each of the object's last keyframe surface samples against
         the model of its other keyframes, at their bundle-adjusted poses: how well the object's
-        own views agree (noise, shading). None with fewer than two samples."""
+        own views agree (noise, shading). Only samples that mostly overlap the others count
+        (SELF_RESIDUAL_MIN_OVERLAP: where two views share an edge only, their colours differ
+        face by face); None without two such views."""
         voxel = self.config.objects.shape_voxel
         views = [(keyframe.T_map_cam, self.object_surfaces.get(keyframe.frame_index, {}).get(object_map.object_id))
                  for keyframe in object_map.keyframes]
@@ -1246,8 +1253,11 @@ class Reconstructor:
         for k, (T_model_camera, sample) in enumerate(views):
             others = build_model([view for j, view in enumerate(views) if j != k], voxel)
             own = region_model(sample, voxel)
-            if others is not None and own is not None:
-                residuals.append(color_residual(own, others, cKDTree(others.points), T_model_camera, voxel))
+            if others is None or own is None:
+                continue
+            tree = cKDTree(others.points)
+            if fitness(own, tree, T_model_camera, voxel) >= SELF_RESIDUAL_MIN_OVERLAP:  # else: other faces
+                residuals.append(color_residual(own, others, tree, T_model_camera, voxel))
         return float(np.median(residuals)) if residuals else None
 
     def _claim_region(self, measurements: FrameMeasurements, group: list[int], outcome: ObjectTrackingResult,

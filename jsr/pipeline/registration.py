@@ -192,7 +192,8 @@ class RegistrationResult:
     """Outcome of :func:`register` (or :func:`evaluate_pose`).
 
     ``transformation``: ``T_map_cam``. On failure it is the best pose found (or the initial
-    guess / identity when RANSAC did not run) and must not be trusted; ``reason`` says why.
+    guess / identity when RANSAC did not run) and must not be trusted; ``reason`` says why
+    (on a success it is empty, except for :func:`surface_pose_result`).
     ``fitness`` is ``num_inliers / num_matches``; ``rmse`` the RMS distance of the inlier 3D
     point pairs in metres (0.0 when there are none); ``iterations`` the minimal samples drawn
     (an initial guess is scored in addition to them).
@@ -748,6 +749,19 @@ def evaluate_pose(
     problem = _Problem(corr, ransac_cfg, noise_cfg)
     _, _, masks = problem.score_one(transform)
     return _result(problem, corr, ransac_cfg, transform, masks, 0, "", started)
+
+
+def surface_pose_result(transform: np.ndarray, corr: Correspondences) -> RegistrationResult:
+    """A successful result at a pose that a surface alignment alone decided (shape-based
+    re-identification): ``transform`` is ``T_map_cam``; none of the ``corr`` matches is an
+    inlier (too few agree to register, and chance agreements must not link landmarks), so
+    ``num_inliers`` is 0 and ``reason`` says where the pose came from."""
+    a, b, c = corr.num_point3d, corr.num_point2d, corr.num_plane
+    return RegistrationResult(
+        transformation=np.array(transform, dtype=float), success=True,
+        inliers_point3d=np.zeros(a, dtype=bool), inliers_point2d=np.zeros(b, dtype=bool),
+        inliers_plane=np.zeros(c, dtype=bool), num_matches=corr.num_matches, num_inliers=0, fitness=0.0,
+        rmse=0.0, iterations=0, reason="pose from a surface alignment alone", correspondences=corr)
 
 
 def _too_few(corr: Correspondences, ransac_cfg: RansacConfig) -> str:

@@ -241,6 +241,7 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
     source = region.points[valid_region]
     target = model.points[valid_model[nearest]]
 
+    centre = region.points.mean(axis=0)  # where alignments are compared (same_placement)
     samples = rng.integers(0, len(source), size=(iterations, 3))
     a, b = source[samples], target[samples]
     edges_a = np.linalg.norm(a - np.roll(a, 1, axis=1), axis=2)
@@ -259,7 +260,8 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
     order: list[int] = []  # the best-supported distinct alignments
     for index in ranked[:200]:
         T = make_transform(rotations[index], translations[index])
-        if all(not _close(T, make_transform(rotations[k], translations[k]), 0.05, 20.0) for k in order):
+        if all(not same_placement(T, make_transform(rotations[k], translations[k]), centre, 0.05, 20.0)
+               for k in order):
             order.append(int(index))
         if len(order) == hypotheses:
             break
@@ -278,7 +280,7 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
             coarse = _icp(region, model, tree, start, voxel)
             if fitness(region, tree, coarse, voxel) < min_fitness:
                 continue  # not a fit: the slower coloured ICP (most of the time here) would not make it one
-            if any(_close(coarse, other, 0.05, 20.0) for other in refined_from):
+            if any(same_placement(coarse, other, centre, 0.05, 20.0) for other in refined_from):
                 continue  # many starts converge to one fit (within 5 cm and 20 degrees): refine it once
             refined_from.append(coarse)
             refined = _colored_icp(region, model, coarse, voxel)
@@ -290,7 +292,7 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
                      for index, (score, T) in enumerate(candidates)), key=lambda item: item[:3])
     distinct: list[Alignment] = []
     for residual, negative_fitness, _, T in scored:
-        if all(not _close(T, other.T_model_region) for other in distinct):
+        if all(not same_placement(T, other.T_model_region, centre) for other in distinct):
             distinct.append(Alignment(T, -negative_fitness, residual))
         if len(distinct) == max_candidates:
             break
@@ -360,7 +362,12 @@ def _symmetry_axes(points: np.ndarray, normals: np.ndarray, faces: int = 2) -> l
     return lines
 
 
-def _close(a: np.ndarray, b: np.ndarray, metres: float = 0.02, degrees: float = 10.0) -> bool:
-    difference = np.linalg.inv(a) @ b
-    cosine = np.clip((np.trace(difference[:3, :3]) - 1) / 2, -1, 1)
-    return np.linalg.norm(difference[:3, 3]) < metres and np.degrees(np.arccos(cosine)) < degrees
+def same_placement(T_a: np.ndarray, T_b: np.ndarray, centre: np.ndarray, metres: float = 0.02,
+                   degrees: float = 10.0) -> bool:
+    """Whether two ``(4, 4)`` alignments (model <- region) place the region alike: its
+    ``centre`` ``(3,)`` (region frame) within ``metres``, and the rotations within ``degrees``.
+    Measured at the region, not at the region frame's origin (the camera, 1-3 m away, where a
+    small turn reads as a long shift)."""
+    shift = np.linalg.norm(transform_points(T_a, centre[None]) - transform_points(T_b, centre[None]))
+    cosine = np.clip((np.trace(T_a[:3, :3].T @ T_b[:3, :3]) - 1) / 2, -1, 1)
+    return bool(shift < metres and np.degrees(np.arccos(cosine)) < degrees)
