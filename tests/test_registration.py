@@ -280,6 +280,22 @@ def test_depth_dependent_threshold() -> None:
     np.testing.assert_array_equal(registration.point_inliers(np.eye(4), corr, NOISE), [False, True])
 
 
+def test_surface_pose_result_links_landmarks_only_when_enough_agree() -> None:
+    """A pose from a surface alignment alone succeeds whatever the matches say; the matches
+    agreeing with it stay inliers (linking old landmarks) only from min_links on."""
+    rng = np.random.default_rng(3)
+    frame = rng.uniform([-0.2, -0.2, 1.0], [0.2, 0.2, 1.5], (10, 3))
+    landmarks = frame + rng.uniform(0.1, 0.3, (10, 3))  # wrong matches ...
+    landmarks[:6] = frame[:6]  # ... but six agree with the pose
+    corr = Correspondences(frame_points=frame, map_points=landmarks)
+    linked = registration.surface_pose_result(np.eye(4), corr, RANSAC, NOISE, min_links=5)
+    assert linked.success and linked.num_inliers == 6 and linked.inliers_point3d[:6].all()
+    unlinked = registration.surface_pose_result(np.eye(4), corr, RANSAC, NOISE, min_links=7)
+    assert unlinked.success and unlinked.num_inliers == 0 and not unlinked.inliers_point3d.any()
+    np.testing.assert_array_equal(unlinked.transformation, np.eye(4))
+    assert unlinked.reason  # says where the pose came from
+
+
 def test_2d_landmark_behind_the_camera_is_an_outlier() -> None:
     bearing = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
     landmarks = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, -2.0]])

@@ -1182,10 +1182,12 @@ class Reconstructor:
             matched = match_frame_guided(measurements, object_map, np.flatnonzero(object_map.points.active), T_o_c,
                                          self.intrinsics, self.config, self._focal_length,
                                          point_measurements=group_points, radius_px=config.shape_radius_px)
-            # The pose is the surface's. Landmark matches that agree with it by chance (too few
-            # to register) would tie old landmarks to wrong measurements: none is kept, and the
-            # region's features become new landmarks of the object.
-            result = surface_pose_result(T_o_c, matched.correspondences)
+            # The pose is the surface's. The landmark matches that agree with it (too few to
+            # register) link the view to the old landmarks, so that bundle adjustment refines the
+            # surface's pose, but only from detection.min_segment_features of them on: a match
+            # or two may agree by chance. The region's other features become new landmarks.
+            result = surface_pose_result(T_o_c, matched.correspondences, self.config.ransac, self.config.noise,
+                                         self.config.detection.min_segment_features)
             logger.info("frame %d: moving region %s is object %d again (its surface alone: fitness %.2f, colour "
                         "residual %.3f)", measurements.frame_index, group, object_map.object_id, alignment.fitness,
                         alignment.color_residual)

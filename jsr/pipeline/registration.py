@@ -50,8 +50,9 @@ alternate for up to ``ransac.refine_rounds`` rounds.
 
 from __future__ import annotations
 
-import logging
+import dataclasses
 import functools
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -751,17 +752,22 @@ def evaluate_pose(
     return _result(problem, corr, ransac_cfg, transform, masks, 0, "", started)
 
 
-def surface_pose_result(transform: np.ndarray, corr: Correspondences) -> RegistrationResult:
+def surface_pose_result(transform: np.ndarray, corr: Correspondences, ransac_cfg: RansacConfig,
+                        noise_cfg: NoiseConfig, min_links: int) -> RegistrationResult:
     """A successful result at a pose that a surface alignment alone decided (shape-based
-    re-identification): ``transform`` is ``T_map_cam``; none of the ``corr`` matches is an
-    inlier (too few agree to register, and chance agreements must not link landmarks), so
-    ``num_inliers`` is 0 and ``reason`` says where the pose came from."""
-    a, b, c = corr.num_point3d, corr.num_point2d, corr.num_plane
-    return RegistrationResult(
-        transformation=np.array(transform, dtype=float), success=True,
-        inliers_point3d=np.zeros(a, dtype=bool), inliers_point2d=np.zeros(b, dtype=bool),
-        inliers_plane=np.zeros(c, dtype=bool), num_matches=corr.num_matches, num_inliers=0, fitness=0.0,
-        rmse=0.0, iterations=0, reason="pose from a surface alignment alone", correspondences=corr)
+    re-identification): ``transform`` is ``T_map_cam``. The ``corr`` matches that agree with
+    it (:func:`evaluate_pose`) stay inliers, linking the view to old landmarks, only when at
+    least ``min_links`` of them agree: fewer may agree by chance. ``reason`` says where the
+    pose came from."""
+    evaluated = evaluate_pose(transform, corr, ransac_cfg, noise_cfg)
+    masks = [evaluated.inliers_point3d, evaluated.inliers_point2d, evaluated.inliers_plane]
+    if evaluated.num_inliers < min_links:
+        masks = [np.zeros_like(mask, dtype=bool) for mask in masks]
+    num_inliers = int(sum(int(np.sum(mask)) for mask in masks))
+    return dataclasses.replace(
+        evaluated, success=True, inliers_point3d=masks[0], inliers_point2d=masks[1], inliers_plane=masks[2],
+        num_inliers=num_inliers, fitness=num_inliers / corr.num_matches if corr.num_matches else 0.0,
+        rmse=evaluated.rmse if num_inliers else 0.0, reason="pose from a surface alignment alone")
 
 
 def _too_few(corr: Correspondences, ransac_cfg: RansacConfig) -> str:
