@@ -1216,7 +1216,7 @@ class Reconstructor:
           within 1.5 times its own.
         """
         config = self.config.objects
-        if not alignments:
+        if not alignments or config.shape_max_color_ratio <= 0:  # 0: only fits that landmarks confirm
             return None
         complete = [a for a in alignments if a.fitness >= config.shape_min_fitness]
         if not complete:
@@ -1228,8 +1228,6 @@ class Reconstructor:
                                          SHAPE_MODE_METRES, SHAPE_MODE_DEGREES)]
         if rivals:
             return None
-        if config.shape_max_color_ratio <= 0:
-            return None  # only fits that landmarks confirm
         self_residual = self._surface_self_residual(object_map)
         if self_residual is None or chosen.color_residual > config.shape_max_color_ratio * self_residual:
             return None
