@@ -446,6 +446,18 @@ class DepthView:
         nearest[inside] = self.near_depth[v[inside], u[inside]]
         return inside, seen, nearest
 
+    def seen_through(self, in_view: np.ndarray, intrinsics, noise, margin: float, sigmas: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(N, 3)`` points in this view's camera frame: per point whether the view measured
+        depth where it projects, whether the view saw through it (its whole neighbourhood
+        farther than the point by more than ``max(margin, sigmas * sigma_Z)``, sigma_Z of the
+        measured depth), and that depth (each ``(N,)``)."""
+        inside, seen, nearest = self.sample(in_view, intrinsics)
+        measured = inside & (seen > 0)
+        threshold = np.maximum(margin, sigmas * noise.sigma_z_coefficient * seen**2)
+        through = measured & (nearest > 0) & (in_view[:, 2] < nearest - threshold)
+        return measured, through, seen
+
 
 def free_space_violations(
     depth: np.ndarray,
@@ -481,15 +493,12 @@ def free_space_violations(
     camera = np.column_stack([(u - cx) / fx * zs, (v - cy) / fy * zs, zs])
     T_view_cam = np.linalg.inv(view.T_w_c) @ T_w_c
     in_view = camera @ T_view_cam[:3, :3].T + T_view_cam[:3, 3]
-    inside, seen, nearest = view.sample(in_view, intrinsics)
-    usable = inside & (seen > 0)
-    sigma = noise.sigma_z_coefficient * seen**2
-    threshold = np.maximum(margin, (noise.inlier_sigmas if sigmas is None else sigmas) * sigma)
-    closer = usable & (nearest > 0) & (in_view[:, 2] < nearest - threshold)
+    usable, closer, seen = view.seen_through(in_view, intrinsics, noise, margin,
+                                             noise.inlier_sigmas if sigmas is None else sigmas)
     # agreement uses the registration's tight inlier threshold: between it and the violation
     # margin a pixel is neither (uncertain)
-    agrees = usable & (np.abs(in_view[:, 2] - seen) <= np.maximum(noise.min_inlier_threshold,
-                                                                   noise.inlier_sigmas * sigma))
+    agrees = usable & (np.abs(in_view[:, 2] - seen) <= np.maximum(
+        noise.min_inlier_threshold, noise.inlier_sigmas * noise.sigma_z_coefficient * seen**2))
     segment = labels[rows, cols]
     np.add.at(violations, segment[closer], 1)
     np.add.at(consistent, segment[agrees], 1)

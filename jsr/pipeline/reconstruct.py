@@ -894,12 +894,8 @@ class Reconstructor:
         for keyframe_id, view in self.depth_views:
             T_w_view = self.static_map.keyframes[keyframe_id].T_map_cam  # after bundle adjustment
             in_view = transform_points(invert_transform(T_w_view), world_points)
-            z = in_view[:, 2]
-            inside, seen, nearest = view.sample(in_view, self.intrinsics)
-            measured = inside & (seen > 0)
-            margin = np.maximum(config.free_space_margin,
-                                config.free_space_sigmas * self.config.noise.sigma_z_coefficient * seen**2)
-            through = measured & (nearest > 0) & (nearest > z + margin)
+            measured, through, _ = view.seen_through(in_view, self.intrinsics, self.config.noise,
+                                                     config.free_space_margin, config.free_space_sigmas)
             covered |= measured
             contradicted |= measured & ~through
         return covered & ~contradicted
@@ -1139,6 +1135,7 @@ class Reconstructor:
         region = region_model(sample, config.shape_voxel)
         if region is None:
             return False
+        region_centre = region.points.mean(axis=0)  # where alignments are compared (same_placement)
         best = None
         fits = []  # (object map, its surface model, the alignments): for the surface-alone decision
         landmarks_disagree = False  # landmarks registered the region, away from every surface fit
@@ -1167,8 +1164,8 @@ class Reconstructor:
                              object_map.object_id, result.num_inliers, result.num_matches)
                 if not result.success or result.num_inliers < self.config.ransac.min_inliers:
                     continue
-                if not same_placement(T_o_c, result.transformation, region.points.mean(axis=0),
-                                      SHAPE_CONFIRM_METRES, SHAPE_CONFIRM_DEGREES):
+                if not same_placement(T_o_c, result.transformation, region_centre, SHAPE_CONFIRM_METRES,
+                                      SHAPE_CONFIRM_DEGREES):
                     landmarks_disagree = True
                     continue
                 if best is None or result.num_inliers > best[3].num_inliers:
@@ -1222,10 +1219,11 @@ class Reconstructor:
         if not complete:
             return None
         chosen = complete[0]  # alignments come best colour agreement first
+        centre = region.points.mean(axis=0)
         rivals = [a for a in alignments if a is not chosen and a.fitness >= chosen.fitness - SHAPE_RIVAL_FITNESS_GAP
                   and a.color_residual < SHAPE_RIVAL_COLOR_RATIO * chosen.color_residual
-                  and not same_placement(a.T_model_region, chosen.T_model_region, region.points.mean(axis=0),
-                                         SHAPE_MODE_METRES, SHAPE_MODE_DEGREES)]
+                  and not same_placement(a.T_model_region, chosen.T_model_region, centre, SHAPE_MODE_METRES,
+                                         SHAPE_MODE_DEGREES)]
         if rivals:
             return None
         self_residual = self._surface_self_residual(object_map)
