@@ -169,7 +169,8 @@ class ObjectsConfig:
     shape_reidentify: bool = True
     shape_voxel: float = 0.01
     shape_radius_px: float = 40.0
-    shape_min_fitness: float = 0.9
+    shape_min_fitness: float = 0.5
+    shape_max_seen_through: float = 0.05
     shape_min_constraint: float = 0.015
     shape_max_color_ratio: float = 2.0
     merge_maps: bool = True
@@ -314,6 +315,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "features.object_detail_margin": (lambda v: v >= 0, "at least 0"),
     "objects.shape_radius_px": (lambda v: v > 0, "positive"),
     "objects.shape_min_fitness": (lambda v: 0 < v <= 1, "in (0, 1]"),
+    "objects.shape_max_seen_through": (lambda v: 0 <= v <= 1, "in [0, 1]"),
     "objects.shape_min_constraint": (lambda v: v >= 0, "non-negative"),
     "objects.shape_max_color_ratio": (lambda v: v == 0 or v >= 1, "0 (only fits that landmarks confirm) or at least 1"),
     "objects.merge_min_shared_inliers": (lambda v: v >= 1, "at least 1"),

@@ -114,35 +114,103 @@ def test_geometric_constraint_tells_a_box_corner_from_sliding_surfaces():
     assert cylinder < 0.005 and flat < 0.005
 
 
-def test_shape_alone_needs_a_complete_pinned_unrivalled_fit_in_the_objects_own_colours():
+class _Intrinsics:
+    fx = fy = 300.0
+    cx, cy = 160.0, 120.0
+
+
+def _depth_view(camera_points, wall_depth=None, shape=(240, 320)):
+    """A :class:`~jsr.pipeline.objects.DepthView` (stride 2, camera frame) of ``(N, 3)``
+    camera-frame points rendered into a z-buffer, in front of a wall at ``wall_depth`` m
+    (None: no depth elsewhere)."""
+    from jsr.geometry import project_points
+    from jsr.pipeline.objects import DepthView
+
+    depth = np.full(shape, np.inf if wall_depth is None else wall_depth, dtype=np.float64)
+    uv = np.round(project_points(camera_points, _Intrinsics.fx, _Intrinsics.fy, _Intrinsics.cx,
+                                 _Intrinsics.cy)).astype(int)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < shape[1]) & (uv[:, 1] >= 0) & (uv[:, 1] < shape[0])
+    np.minimum.at(depth, (uv[inside, 1], uv[inside, 0]), camera_points[inside, 2])
+    depth[~np.isfinite(depth)] = 0.0
+    return DepthView(depth[::2, ::2].astype(np.float32), np.eye(4), 2)
+
+
+def _box_camera():
+    """``T_model_camera`` of a camera 0.8 m from the box centre on +x+y+z, looking at it."""
+    from jsr.geometry import look_at
+
+    return look_at(np.array([0.45, 0.4, 0.5]), np.zeros(3))
+
+
+def test_seen_through_share_finds_a_model_placed_in_seen_empty_space():
+    """A right placement puts the model on the surface the view measured; one 10 cm towards
+    the camera, or 15 cm aside against a wall behind the box, puts it in space seen empty."""
+    from jsr.config import load_config
+    from jsr.pipeline.surfaces import seen_through_share
+
+    noise = load_config(None).noise
+    points, colors = _box_faces()
+    camera = _box_camera()
+    model = build_model([(camera, _view(points, colors, camera))], VOXEL)
+    view = _depth_view(_view(points, colors, camera).points.astype(float), wall_depth=1.6)
+
+    def share(T_model_camera):
+        return seen_through_share(model, T_model_camera, view, _Intrinsics(), noise, 0.03, 3.0)
+
+    assert share(camera) < 0.01
+    towards = make_transform(np.eye(3), [0.0, 0.0, -0.1])  # in the camera frame: 10 cm nearer
+    assert share(camera @ np.linalg.inv(towards)) > 0.9
+    aside = make_transform(np.eye(3), [0.15, 0.0, 0.0])
+    assert share(camera @ np.linalg.inv(aside)) > 0.3
+    behind = make_transform(np.eye(3), [0.0, 0.0, 0.1])  # occluded by the box: not seen through
+    assert share(camera @ np.linalg.inv(behind)) < 0.01
+    assert seen_through_share(model, camera, _depth_view(np.zeros((0, 3))), _Intrinsics(), noise, 0.03,
+                              3.0) is None  # no depth where the model falls: nothing to check
+
+
+def test_shape_alone_needs_a_pinned_unrivalled_fit_in_the_objects_own_colours_that_the_view_allows():
     """Reconstructor._shape_alone: the rules that let a surface alignment re-identify a lost
-    object without landmark matches."""
+    object without landmark matches. The region is the box seen from ``camera``; the right
+    alignment is ``camera`` (model <- region camera)."""
     from types import SimpleNamespace
 
     from jsr.config import load_config
     from jsr.pipeline.reconstruct import Reconstructor
-    from jsr.pipeline.surfaces import Alignment
+    from jsr.pipeline.surfaces import Alignment, region_model
 
     config = load_config(None)
-    owner = SimpleNamespace(config=config, _surface_self_residual=lambda object_map: 0.05)
-    camera = make_transform(np.eye(3), [0.8, 0.6, 0.7])
-    box = build_model([(camera, _view(*_box_faces(), camera))], VOXEL)
-    turned = make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.pi), np.zeros(3))
-    shifted = make_transform(np.eye(3), [0.03, 0.0, 0.0])
+    owner = SimpleNamespace(config=config, intrinsics=_Intrinsics(), _surface_self_residual=lambda object_map: 0.05)
+    points, colors = _box_faces()
+    camera = _box_camera()
+    seen = _view(points, colors, camera)
+    box = build_model([(camera, seen)], VOXEL)
+    region = region_model(seen, VOXEL)
+    view = _depth_view(seen.points.astype(float), wall_depth=1.6)
+    turned = make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.pi), np.zeros(3)) @ camera
+    shifted = make_transform(np.eye(3), [0.03, 0.0, 0.0]) @ camera
 
-    def alone(alignments, region=box, model=box):
-        return Reconstructor._shape_alone(owner, SimpleNamespace(object_id=1), region, model, alignments)
+    def alone(alignments, region=region, model=box, view=view):
+        return Reconstructor._shape_alone(owner, SimpleNamespace(object_id=1), region, model, alignments, view)
 
-    right = Alignment(np.eye(4), 0.98, 0.07)
+    right = Alignment(camera, 0.98, 0.07)
     assert alone([right]) is right
-    assert alone([Alignment(np.eye(4), 0.8, 0.07)]) is None  # too little of the region on the model
+    assert alone([Alignment(camera, 0.6, 0.07)]) is not None  # the rest of the region: sides never seen
+    assert alone([Alignment(camera, 0.4, 0.07)]) is None  # too little of the region on the model
     too_colourful = 1.2 * config.objects.shape_max_color_ratio * 0.05
-    assert alone([Alignment(np.eye(4), 0.98, too_colourful)]) is None  # beyond the object's own views' agreement
+    assert alone([Alignment(camera, 0.98, too_colourful)]) is None  # beyond the object's own views' agreement
     assert alone([right, Alignment(turned, 0.95, 0.09)]) is None  # a turned fit nearly as good: ambiguous
     assert alone([right, Alignment(turned, 0.95, 0.2)]) is right  # the turned fit's colours disagree
     assert alone([right, Alignment(shifted, 0.97, 0.07)]) is right  # 3 cm apart: the same fit
-    cylinder = build_model([(camera, _view(*_cylinder_side(), camera))], VOXEL)
-    assert alone([right], cylinder, cylinder) is None  # turns about its axis: shape does not pin it
+    # the same fit, but the frame saw 20 cm past the box: the model would float in empty space
+    farther = _depth_view(seen.points.astype(float) * (1 + 0.2 / np.linalg.norm(seen.points, axis=1))[:, None],
+                          wall_depth=1.6)
+    assert alone([right], view=farther) is None
+    assert alone([right], view=_depth_view(np.zeros((0, 3)))) is None  # no depth to check it against
+    cylinder_points, cylinder_colors = _cylinder_side()
+    cylinder_seen = _view(cylinder_points, cylinder_colors, camera)
+    cylinder = build_model([(camera, cylinder_seen)], VOXEL)
+    assert alone([right], region_model(cylinder_seen, VOXEL), cylinder,
+                 _depth_view(cylinder_seen.points.astype(float))) is None  # turns about its axis: not pinned
     owner._surface_self_residual = lambda object_map: None
     assert alone([right]) is None  # one view of the object: nothing to compare colours with
     owner._surface_self_residual = lambda object_map: 0.05

@@ -75,6 +75,7 @@ from jsr.pipeline.surfaces import (
     region_model,
     same_placement,
     sample_surface,
+    seen_through_share,
 )
 from jsr.pipeline.vlad import SegmentIndex, VladVocabulary
 
@@ -90,6 +91,7 @@ SHAPE_RIVAL_FITNESS_GAP = 0.1  # a surface fit this close in fitness to the chos
 SHAPE_RIVAL_COLOR_RATIO = 1.5  # ... and within this factor of its colour residual makes the surface ambiguous
 SHAPE_MODE_METRES, SHAPE_MODE_DEGREES = 0.1, 15.0  # fits closer than this (at the region) are one fit, not rivals
 SHAPE_CONFIRM_METRES, SHAPE_CONFIRM_DEGREES = 0.2, 30.0  # landmarks confirm a surface fit within this of it
+SHAPE_SEEN_THROUGH_VOXELS, SHAPE_SEEN_THROUGH_SIGMAS = 3.0, 3.0  # a model point is seen through beyond max(3 voxels, 3 sigma_Z)
 SELF_RESIDUAL_MIN_OVERLAP = 0.5  # own views compared only where this share of one lies on the others
 SELF_RESIDUAL_VIEWS = 6  # an object's latest keyframe samples that measure how its own views agree
 # two frames' rotations fitted to 5-15 points each differ by a few degrees (synth_two seed 3: 3.2)
@@ -1170,9 +1172,11 @@ class Reconstructor:
                     continue
                 if best is None or result.num_inliers > best[3].num_inliers:
                     best = (object_map, T_o_c, matched, result)
+        view = DepthView(np.asarray(frame.depth[::SURFACE_STRIDE, ::SURFACE_STRIDE], dtype=np.float32), np.eye(4),
+                         SURFACE_STRIDE)  # this frame's depth, camera frame: is a placed model seen through?
         shape_alone = [] if best is not None or landmarks_disagree else [
             (object_map, alone) for object_map, model, alignments in fits
-            if (alone := self._shape_alone(object_map, region, model, alignments)) is not None]
+            if (alone := self._shape_alone(object_map, region, model, alignments, view)) is not None]
         if len(shape_alone) == 1:  # two lost objects fitting as well: neither is trusted
             object_map, alignment = shape_alone[0]
             T_o_c = alignment.T_model_region
@@ -1200,25 +1204,30 @@ class Reconstructor:
         return True
 
     def _shape_alone(self, object_map: ObjectMap, region: SurfaceModel, model: SurfaceModel,
-                     alignments: list[Alignment]) -> Alignment | None:
+                     alignments: list[Alignment], view: DepthView) -> Alignment | None:
         """The alignment that the region's surface alone makes certain, or None. It must
-        - cover the model: at least ``objects.shape_min_fitness`` of the region on its surface;
+        - lie on the model: at least ``objects.shape_min_fitness`` of the region on its surface
+          (the rest may show sides the map never saw: the jump turned the object);
+        - leave the model where this view (``view``, the frame's depth) saw it or something in
+          front of it: at most ``objects.shape_max_seen_through`` of the model's facing points
+          seen through (:func:`~jsr.pipeline.surfaces.seen_through_share`). Measured: right
+          fits 0-0.4%; wrong fits whose colours pass (kitchen_box120) 10-90%;
         - be pinned by shape (:func:`~jsr.pipeline.surfaces.geometric_constraint` at least
           ``objects.shape_min_constraint``): colour tells a box's four fits apart, but is not
           trusted to fix a turn about a cylinder's axis;
         - agree in colour as the object's own views agree with each other: residual at most
           ``objects.shape_max_color_ratio`` times :meth:`_surface_self_residual` (measured:
-          own views 0.045-0.06, right fits 1.3-1.7 times that, a box turned over 2.4 times);
+          own views 0.045-0.06, right fits 1.2-1.8 times that, a box turned over 2.4 times);
         - have no rival: no other fit as complete (fitness within 0.1) with a colour residual
           within 1.5 times its own.
         """
         config = self.config.objects
         if not alignments or config.shape_max_color_ratio <= 0:  # 0: only fits that landmarks confirm
             return None
-        complete = [a for a in alignments if a.fitness >= config.shape_min_fitness]
-        if not complete:
+        on_model = [a for a in alignments if a.fitness >= config.shape_min_fitness]
+        if not on_model:
             return None
-        chosen = complete[0]  # alignments come best colour agreement first
+        chosen = on_model[0]  # alignments come best colour agreement first
         centre = region.points.mean(axis=0)
         rivals = [a for a in alignments if a is not chosen and a.fitness >= chosen.fitness - SHAPE_RIVAL_FITNESS_GAP
                   and a.color_residual < SHAPE_RIVAL_COLOR_RATIO * chosen.color_residual
@@ -1229,10 +1238,15 @@ class Reconstructor:
         self_residual = self._surface_self_residual(object_map)
         if self_residual is None or chosen.color_residual > config.shape_max_color_ratio * self_residual:
             return None
+        seen_through = seen_through_share(model, chosen.T_model_region, view, self.intrinsics, self.config.noise,
+                                          SHAPE_SEEN_THROUGH_VOXELS * config.shape_voxel, SHAPE_SEEN_THROUGH_SIGMAS)
+        if seen_through is None or seen_through > config.shape_max_seen_through:
+            return None
         constraint = geometric_constraint(region, model, cKDTree(model.points), chosen.T_model_region,
                                           config.shape_voxel)
-        logger.debug("object %d: surface fit %.2f, colour residual %.3f (own views %.3f), constraint %.3f",
-                     object_map.object_id, chosen.fitness, chosen.color_residual, self_residual, constraint)
+        logger.debug("object %d: surface fit %.2f, colour residual %.3f (own views %.3f), %.3f seen through, "
+                     "constraint %.3f", object_map.object_id, chosen.fitness, chosen.color_residual, self_residual,
+                     seen_through, constraint)
         if constraint < config.shape_min_constraint:
             return None
         return chosen

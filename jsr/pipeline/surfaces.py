@@ -10,9 +10,10 @@ four ways), and point-to-plane ICP. The candidate alignments it returns are pose
 *predictions*: the reconstructor accepts one when the object's landmarks confirm it by
 prediction-based feature matching and registration, or, when no landmarks match (the jump
 showed the object from a view too far from its map's for SIFT), when the surface alone is
-certain: nearly all of the region on the model, a shape that pins the fit
-(:func:`geometric_constraint`), colours that agree as the object's own views agree, and no
-rival fit (``objects.shape_*``).
+certain: most of the region on the model (the rest may be sides the map never saw), a model
+that, so placed, the view does not see through (:func:`seen_through_share`), a shape that pins
+the fit (:func:`geometric_constraint`), colours that agree as the object's own views agree,
+and no rival fit (``objects.shape_*``).
 
 Frames: ``camera`` is the frame of the view a sample was taken in; ``model`` is the object
 map's frame. Transforms are ``(4, 4)`` and map points of the right-hand frame into the left.
@@ -330,6 +331,25 @@ def geometric_constraint(region: SurfaceModel, model: SurfaceModel, model_tree: 
     radius = float(np.sqrt(np.mean(np.sum((p - centre) ** 2, axis=1))))
     jacobian = np.hstack([np.cross(p - centre, n) / max(radius, 1e-9), n])
     return float(np.linalg.eigvalsh(jacobian.T @ jacobian)[0] / len(p))
+
+
+def seen_through_share(model: SurfaceModel, T_model_camera: np.ndarray, view, intrinsics, noise, margin: float,
+                       sigmas: float, min_points: int = 20) -> float | None:
+    """Share of the model's points that the current view saw through if the model sat at
+    ``T_model_camera`` (model <- this camera): of the points facing the camera that project
+    where ``view`` (a :class:`~jsr.pipeline.objects.DepthView` of this frame, identity pose)
+    measured depth, those in front of all the depth around them by more than ``max(margin,
+    sigmas * sigma_Z)``. A right fit puts the model where the view sees a surface or behind one
+    (occluded), whatever part of the object the region shows; a wrong one puts some of it in
+    space the view saw empty. None when fewer than ``min_points`` can be checked."""
+    T_camera_model = np.linalg.inv(T_model_camera)
+    points = transform_points(T_camera_model, model.points)
+    normals = model.normals @ T_camera_model[:3, :3].T
+    facing = np.einsum("ij,ij->i", points, normals) < 0  # the side of the surface the camera sees
+    measured, through, _ = view.seen_through(points[facing], intrinsics, noise, margin, sigmas)
+    if measured.sum() < min_points:
+        return None
+    return float(through.sum() / measured.sum())
 
 
 def _half_turn(axis: np.ndarray, centre: np.ndarray) -> np.ndarray:
