@@ -66,10 +66,11 @@ def test_alignment_is_reproducible():
     turned = transform_points(make_transform(rotation_about_axis([0, 0, 1], 0.7), [0.02, 0, 0]), points)
     region = build_model([(T, _view(turned, colors, T))], VOXEL)
     first = align_surfaces(region, model, VOXEL, np.random.default_rng(5))
-    second = align_surfaces(region, model, VOXEL, np.random.default_rng(5))
-    assert len(first) == len(second)
-    for a, b in zip(first, second):
-        np.testing.assert_allclose(a.T_model_region, b.T_model_region, atol=1e-9)
+    for _ in range(3):  # Open3D's multi-threaded ICP differed in the last bits from run to run
+        again = align_surfaces(region, model, VOXEL, np.random.default_rng(5))
+        assert len(again) == len(first)
+        for a, b in zip(first, again):
+            np.testing.assert_array_equal(a.T_model_region, b.T_model_region)  # bit for bit
 
 
 def test_sample_surface_keeps_mask_pixels_with_depth():
@@ -201,6 +202,9 @@ def test_shape_alone_needs_a_pinned_unrivalled_fit_in_the_objects_own_colours_th
     assert alone([right, Alignment(turned, 0.95, 0.09)]) is None  # a turned fit nearly as good: ambiguous
     assert alone([right, Alignment(turned, 0.95, 0.2)]) is right  # the turned fit's colours disagree
     assert alone([right, Alignment(shifted, 0.97, 0.07)]) is right  # 3 cm apart: the same fit
+    # 15 cm nearer the camera, in space the view saw empty: neither the choice nor a rival
+    nearer = camera @ np.linalg.inv(make_transform(np.eye(3), [0.0, 0.0, -0.15]))
+    assert alone([Alignment(nearer, 0.97, 0.06), right]) is right
     # the same fit, but the frame saw 20 cm past the box: the model would float in empty space
     farther = _depth_view(seen.points.astype(float) * (1 + 0.2 / np.linalg.norm(seen.points, axis=1))[:, None],
                           wall_depth=1.6)

@@ -1172,11 +1172,13 @@ class Reconstructor:
                     continue
                 if best is None or result.num_inliers > best[3].num_inliers:
                     best = (object_map, T_o_c, matched, result)
-        view = DepthView(np.asarray(frame.depth[::SURFACE_STRIDE, ::SURFACE_STRIDE], dtype=np.float32), np.eye(4),
-                         SURFACE_STRIDE)  # this frame's depth, camera frame: is a placed model seen through?
-        shape_alone = [] if best is not None or landmarks_disagree else [
-            (object_map, alone) for object_map, model, alignments in fits
-            if (alone := self._shape_alone(object_map, region, model, alignments, view)) is not None]
+        shape_alone = []
+        if best is None and not landmarks_disagree:
+            # this frame's depth, camera frame: would a model placed by an alignment be seen through?
+            view = DepthView(np.asarray(frame.depth[::SURFACE_STRIDE, ::SURFACE_STRIDE], dtype=np.float32),
+                             np.eye(4), SURFACE_STRIDE)
+            shape_alone = [(object_map, alone) for object_map, model, alignments in fits
+                           if (alone := self._shape_alone(object_map, region, model, alignments, view)) is not None]
         if len(shape_alone) == 1:  # two lost objects fitting as well: neither is trusted
             object_map, alignment = shape_alone[0]
             T_o_c = alignment.T_model_region
@@ -1209,9 +1211,11 @@ class Reconstructor:
         - lie on the model: at least ``objects.shape_min_fitness`` of the region on its surface
           (the rest may show sides the map never saw: the jump turned the object);
         - leave the model where this view (``view``, the frame's depth) saw it or something in
-          front of it: at most ``objects.shape_max_seen_through`` of the model's facing points
-          seen through (:func:`~jsr.pipeline.surfaces.seen_through_share`). Measured: right
-          fits 0-0.4%; wrong fits whose colours pass (kitchen_box120) 10-90%;
+          front of it: of the model's points that face the camera and fall where the frame
+          measured depth, at most ``objects.shape_max_seen_through`` seen through
+          (:func:`~jsr.pipeline.surfaces.seen_through_share`). Measured: right fits 0-0.4%;
+          wrong fits whose colours pass (kitchen_box120) 10-90%. A fit that the view sees
+          through is no rival either: the object cannot be there;
         - be pinned by shape (:func:`~jsr.pipeline.surfaces.geometric_constraint` at least
           ``objects.shape_min_constraint``): colour tells a box's four fits apart, but is not
           trusted to fix a turn about a cylinder's axis;
@@ -1224,12 +1228,21 @@ class Reconstructor:
         config = self.config.objects
         if not alignments or config.shape_max_color_ratio <= 0:  # 0: only fits that landmarks confirm
             return None
-        on_model = [a for a in alignments if a.fitness >= config.shape_min_fitness]
+        margin = SHAPE_SEEN_THROUGH_VOXELS * config.shape_voxel
+        seen_through = [seen_through_share(model, a.T_model_region, view, self.intrinsics, self.config.noise, margin,
+                                           SHAPE_SEEN_THROUGH_SIGMAS) for a in alignments]
+        possible = [a for a, share in zip(alignments, seen_through)  # None: cannot be judged, stays possible
+                    if share is None or share <= config.shape_max_seen_through]
+        on_model = [(a, share) for a, share in zip(alignments, seen_through) if a.fitness >= config.shape_min_fitness
+                    and share is not None and share <= config.shape_max_seen_through]
         if not on_model:
+            logger.debug("object %d: no surface fit on the model that the view allows (fitness %s, seen through %s)",
+                         object_map.object_id, [round(a.fitness, 2) for a in alignments],
+                         [None if share is None else round(share, 3) for share in seen_through])
             return None
-        chosen = on_model[0]  # alignments come best colour agreement first
+        chosen, chosen_seen_through = on_model[0]  # alignments come best colour agreement first
         centre = region.points.mean(axis=0)
-        rivals = [a for a in alignments if a is not chosen and a.fitness >= chosen.fitness - SHAPE_RIVAL_FITNESS_GAP
+        rivals = [a for a in possible if a is not chosen and a.fitness >= chosen.fitness - SHAPE_RIVAL_FITNESS_GAP
                   and a.color_residual < SHAPE_RIVAL_COLOR_RATIO * chosen.color_residual
                   and not same_placement(a.T_model_region, chosen.T_model_region, centre, SHAPE_MODE_METRES,
                                          SHAPE_MODE_DEGREES)]
@@ -1238,15 +1251,11 @@ class Reconstructor:
         self_residual = self._surface_self_residual(object_map)
         if self_residual is None or chosen.color_residual > config.shape_max_color_ratio * self_residual:
             return None
-        seen_through = seen_through_share(model, chosen.T_model_region, view, self.intrinsics, self.config.noise,
-                                          SHAPE_SEEN_THROUGH_VOXELS * config.shape_voxel, SHAPE_SEEN_THROUGH_SIGMAS)
-        if seen_through is None or seen_through > config.shape_max_seen_through:
-            return None
         constraint = geometric_constraint(region, model, cKDTree(model.points), chosen.T_model_region,
                                           config.shape_voxel)
         logger.debug("object %d: surface fit %.2f, colour residual %.3f (own views %.3f), %.3f seen through, "
                      "constraint %.3f", object_map.object_id, chosen.fitness, chosen.color_residual, self_residual,
-                     seen_through, constraint)
+                     chosen_seen_through, constraint)
         if constraint < config.shape_min_constraint:
             return None
         return chosen

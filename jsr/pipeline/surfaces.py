@@ -10,10 +10,10 @@ four ways), and point-to-plane ICP. The candidate alignments it returns are pose
 *predictions*: the reconstructor accepts one when the object's landmarks confirm it by
 prediction-based feature matching and registration, or, when no landmarks match (the jump
 showed the object from a view too far from its map's for SIFT), when the surface alone is
-certain: most of the region on the model (the rest may be sides the map never saw), a model
-that, so placed, the view does not see through (:func:`seen_through_share`), a shape that pins
-the fit (:func:`geometric_constraint`), colours that agree as the object's own views agree,
-and no rival fit (``objects.shape_*``).
+certain: at least half of the region on the model (``objects.shape_min_fitness``; the rest may
+be sides the map never saw), a model that, so placed, the view does not see through
+(:func:`seen_through_share`), a shape that pins the fit (:func:`geometric_constraint`),
+colours that agree as the object's own views agree, and no rival fit (``objects.shape_*``).
 
 Frames: ``camera`` is the frame of the view a sample was taken in; ``model`` is the object
 map's frame. Transforms are ``(4, 4)`` and map points of the right-hand frame into the left.
@@ -21,6 +21,7 @@ map's frame. Transforms are ``(4, 4)`` and map points of the right-hand frame in
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -175,28 +176,44 @@ def _icp(region: SurfaceModel, model: SurfaceModel, tree: cKDTree, T: np.ndarray
     return T
 
 
-def _colored_icp(region: SurfaceModel, model: SurfaceModel, T: np.ndarray, voxel: float) -> np.ndarray:
-    """Open3D's coloured ICP (Park et al. 2017) from ``T``: geometry and colour together slide
-    a flat face into place, which point-to-plane ICP cannot."""
+@contextmanager
+def _open3d_one_thread():
+    """Open3D with one thread inside the block: its ICP sums the normal equations over points
+    in parallel, in whatever order the threads finish, so that with two threads the same input
+    gave fits differing by 1e-14, which grew into object poses 1 cm apart by the end of
+    kitchen_box120. Runs must be reproducible."""
     import open3d as o3d
 
-    registration = o3d.pipelines.registration
-    clouds = []
-    for surface in (region, model):
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(surface.points))
-        cloud.normals = o3d.utility.Vector3dVector(surface.normals)
-        cloud.colors = o3d.utility.Vector3dVector(surface.colors)
-        clouds.append(cloud)
-    for radius in (4 * voxel, 2 * voxel):
-        try:
-            result = registration.registration_colored_icp(
-                clouds[0], clouds[1], radius, T,
-                registration.TransformationEstimationForColoredICP(lambda_geometric=0.9),
-                registration.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=30))
-        except RuntimeError:  # no correspondences within the radius: keep the start
-            break
-        if result.fitness > 0:
-            T = np.asarray(result.transformation).copy()
+    threads = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        yield o3d
+    finally:
+        o3d.utility.set_max_threads(threads)
+
+
+def _colored_icp(region: SurfaceModel, model: SurfaceModel, T: np.ndarray, voxel: float) -> np.ndarray:
+    """Open3D's coloured ICP (Park et al. 2017) from ``T``: geometry and colour together slide
+    a flat face into place, which point-to-plane ICP cannot. Single-threaded, for reproducible
+    results (:func:`_open3d_one_thread`)."""
+    with _open3d_one_thread() as o3d:
+        registration = o3d.pipelines.registration
+        clouds = []
+        for surface in (region, model):
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(surface.points))
+            cloud.normals = o3d.utility.Vector3dVector(surface.normals)
+            cloud.colors = o3d.utility.Vector3dVector(surface.colors)
+            clouds.append(cloud)
+        for radius in (4 * voxel, 2 * voxel):
+            try:
+                result = registration.registration_colored_icp(
+                    clouds[0], clouds[1], radius, T,
+                    registration.TransformationEstimationForColoredICP(lambda_geometric=0.9),
+                    registration.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=30))
+            except RuntimeError:  # no correspondences within the radius: keep the start
+                break
+            if result.fitness > 0:
+                T = np.asarray(result.transformation).copy()
     return T
 
 
@@ -347,7 +364,7 @@ def seen_through_share(model: SurfaceModel, T_model_camera: np.ndarray, view, in
     normals = model.normals @ T_camera_model[:3, :3].T
     facing = np.einsum("ij,ij->i", points, normals) < 0  # the side of the surface the camera sees
     measured, through, _ = view.seen_through(points[facing], intrinsics, noise, margin, sigmas)
-    if measured.sum() < min_points:
+    if measured.sum() < max(min_points, 1):
         return None
     return float(through.sum() / measured.sum())
 
