@@ -21,6 +21,7 @@ map's frame. Transforms are ``(4, 4)`` and map points of the right-hand frame in
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -176,12 +177,16 @@ def _icp(region: SurfaceModel, model: SurfaceModel, tree: cKDTree, T: np.ndarray
     return T
 
 
+ICP_WORKERS = 2  # ICP runs from independent starts run on this many threads (results kept in order)
+
+
 @contextmanager
 def _open3d_one_thread():
-    """Open3D with one thread inside the block: its ICP sums the normal equations over points
-    in parallel, in whatever order the threads finish, so that with two threads the same input
-    gave fits differing by 1e-14, which grew into object poses 1 cm apart by the end of
-    kitchen_box120. Runs must be reproducible."""
+    """Open3D with one thread per call inside the block (the limit is process-wide): its ICP
+    sums the normal equations over points in parallel, in whatever order the threads finish, so
+    that with two threads the same input gave fits differing by 1e-14, which grew into object
+    poses 1 cm apart by the end of kitchen_box120. Runs must be reproducible; the calls run
+    side by side instead (:data:`ICP_WORKERS`)."""
     import open3d as o3d
 
     threads = o3d.utility.get_max_threads()
@@ -194,26 +199,27 @@ def _open3d_one_thread():
 
 def _colored_icp(region: SurfaceModel, model: SurfaceModel, T: np.ndarray, voxel: float) -> np.ndarray:
     """Open3D's coloured ICP (Park et al. 2017) from ``T``: geometry and colour together slide
-    a flat face into place, which point-to-plane ICP cannot. Single-threaded, for reproducible
-    results (:func:`_open3d_one_thread`)."""
-    with _open3d_one_thread() as o3d:
-        registration = o3d.pipelines.registration
-        clouds = []
-        for surface in (region, model):
-            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(surface.points))
-            cloud.normals = o3d.utility.Vector3dVector(surface.normals)
-            cloud.colors = o3d.utility.Vector3dVector(surface.colors)
-            clouds.append(cloud)
-        for radius in (4 * voxel, 2 * voxel):
-            try:
-                result = registration.registration_colored_icp(
-                    clouds[0], clouds[1], radius, T,
-                    registration.TransformationEstimationForColoredICP(lambda_geometric=0.9),
-                    registration.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=30))
-            except RuntimeError:  # no correspondences within the radius: keep the start
-                break
-            if result.fitness > 0:
-                T = np.asarray(result.transformation).copy()
+    a flat face into place, which point-to-plane ICP cannot. Call it inside
+    :func:`_open3d_one_thread`, for reproducible results."""
+    import open3d as o3d
+
+    registration = o3d.pipelines.registration
+    clouds = []
+    for surface in (region, model):
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(surface.points))
+        cloud.normals = o3d.utility.Vector3dVector(surface.normals)
+        cloud.colors = o3d.utility.Vector3dVector(surface.colors)
+        clouds.append(cloud)
+    for radius in (4 * voxel, 2 * voxel):
+        try:
+            result = registration.registration_colored_icp(
+                clouds[0], clouds[1], radius, T,
+                registration.TransformationEstimationForColoredICP(lambda_geometric=0.9),
+                registration.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=30))
+        except RuntimeError:  # no correspondences within the radius: keep the start
+            break
+        if result.fitness > 0:
+            T = np.asarray(result.transformation).copy()
     return T
 
 
@@ -286,25 +292,26 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
 
     tree = cKDTree(model.points)
     model_turns = _symmetry_axes(model.points, model.normals)
-    candidates: list[tuple[float, np.ndarray]] = []
-    refined_from: list[np.ndarray] = []  # point-to-plane fits already refined by coloured ICP
+    starts = []
     for index in order:
         T = make_transform(rotations[index], translations[index])
         aligned = transform_points(T, region.points)
         aligned_normals = region.normals @ T[:3, :3].T
-        starts = [T] + [_half_turn(axis, centre) @ T
-                        for axis, centre in _symmetry_axes(aligned, aligned_normals) + model_turns]
-        for start in starts:
-            coarse = _icp(region, model, tree, start, voxel)
+        starts += [T] + [_half_turn(axis, centre) @ T
+                         for axis, centre in _symmetry_axes(aligned, aligned_normals) + model_turns]
+    # Each ICP depends on its start only: the runs go side by side, their results in order.
+    with _open3d_one_thread(), ThreadPoolExecutor(ICP_WORKERS) as pool:
+        coarse_fits = list(pool.map(lambda start: _icp(region, model, tree, start, voxel), starts))
+        refine: list[np.ndarray] = []  # the point-to-plane fits that coloured ICP refines
+        for coarse in coarse_fits:
             if fitness(region, tree, coarse, voxel) < min_fitness:
                 continue  # not a fit: the slower coloured ICP (most of the time here) would not make it one
-            if any(same_placement(coarse, other, centre, 0.05, 20.0) for other in refined_from):
+            if any(same_placement(coarse, other, centre, 0.05, 20.0) for other in refine):
                 continue  # many starts converge to one fit (within 5 cm and 20 degrees): refine it once
-            refined_from.append(coarse)
-            refined = _colored_icp(region, model, coarse, voxel)
-            score = fitness(region, tree, refined, voxel)
-            if score >= min_fitness:
-                candidates.append((score, refined))
+            refine.append(coarse)
+        refined_fits = list(pool.map(lambda coarse: _colored_icp(region, model, coarse, voxel), refine))
+    candidates = [(score, refined) for refined in refined_fits
+                  if (score := fitness(region, tree, refined, voxel)) >= min_fitness]
     # best colour agreement first: shape fits a box several ways, its texture only one
     scored = sorted(((color_residual(region, model, tree, T, voxel), -score, index, T)
                      for index, (score, T) in enumerate(candidates)), key=lambda item: item[:3])
