@@ -949,9 +949,11 @@ class Reconstructor:
             usual_inliers = max(self.config.detection.min_segment_features, self.config.ransac.min_inliers)
             # a turn is remembered (and held back) from min_segment_features agreeing outliers; one
             # frame alone decides it with twice the usual, two frames with the same turn with that many each
+            memory = self.config.detection.in_place_turn_memory_frames > 0
             ransac = dataclasses.replace(self.config.ransac, min_matches=self.config.detection.min_segment_features,
-                                         min_inliers=usual_inliers if min_turn_degrees is None else
-                                         self.config.detection.min_segment_features, min_inlier_ratio=0.5)
+                                         min_inliers=self.config.detection.min_segment_features
+                                         if memory or min_turn_degrees is not None else usual_inliers,
+                                         min_inlier_ratio=0.5)
             motion = register(subset, ransac, self.config.noise, self.objects_rng)
             if not motion.success:
                 continue
@@ -978,9 +980,12 @@ class Reconstructor:
                 logger.debug("frame %d: segments %s: where they came from is not vacated", measurements.frame_index,
                              group)
                 continue
-            if min_turn_degrees is not None and motion.num_inliers < IN_PLACE_TURN_INLIER_FACTOR * usual_inliers:
-                seen = detection.in_place_turn_memory_frames > 0 and self._turn_seen_before(
-                    measurements, group, static.result.transformation, motion.transformation)
+            needed = usual_inliers if min_turn_degrees is None else IN_PLACE_TURN_INLIER_FACTOR * usual_inliers
+            if motion.num_inliers < needed:
+                # too few agreeing outliers to decide alone (an object turned so that few of its
+                # features match): the same motion in a recent frame confirms it
+                seen = memory and self._turn_seen_before(measurements, group, static.result.transformation,
+                                                         motion.transformation)
                 if not seen:
                     # not confirmed (yet): its new place stays out of the static map meanwhile
                     self._suspect_segments.extend(group)
