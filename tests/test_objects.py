@@ -646,6 +646,39 @@ def test_box_turned_to_unseen_sides_keeps_its_map(sequence_fixture, request):
     assert error.translation_rmse_cm < 2.0 and error.rotation_rmse_deg < 2.0
 
 
+@pytest.fixture(scope="module")
+def few_outliers_jump_sequence(tmp_path_factory):
+    """Seed 4 of two jumping objects (60 frames; the test uses the first 14): at frame 10 the
+    box (object 1) jumps and turns so that only 5-6 of its features still match its static
+    landmarks, fewer than one frame needs to decide a motion."""
+    root = tmp_path_factory.mktemp("objects") / "few_outliers_jump"
+    generate_sequence(root, SynthOptions(frames=60, objects=2, motion="jump", width=640, height=480, seed=4))
+    return root
+
+
+@pytest.mark.parametrize("memory_frames", [0, 3])
+def test_motion_with_few_agreeing_outliers_is_confirmed_by_a_recent_frame(few_outliers_jump_sequence,
+                                                                          memory_frames):
+    """detection.in_place_turn_memory_frames also confirms a region that moved away: too few
+    agreeing outliers in one frame, the same motion in the next, and the box's map starts
+    within 3 frames of its jump; without the memory, not in these frames."""
+    root = few_outliers_jump_sequence
+    result = run(root, [f"detection.in_place_turn_memory_frames={memory_frames}"],
+                 sequence=open_sequence(root, max_frames=14))
+    frames = list(result.sequence)
+    box_maps = []
+    for report in result.reports:
+        labels = labels_of(root, frames[report.frame_index])
+        for object_id in report.objects_created:
+            given = report.mask == object_id
+            if given.any() and (labels[given] == 1).mean() > 0.5:
+                box_maps.append(report.frame_index)
+    if memory_frames:
+        assert box_maps and 10 <= box_maps[0] <= 13
+    else:
+        assert not box_maps
+
+
 def test_turn_is_confirmed_by_the_same_turn_in_a_recent_frame():
     """The remembered turn must move the region to the same old place by the same rotation,
     at most detection.in_place_turn_memory_frames frames earlier."""

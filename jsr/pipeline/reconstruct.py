@@ -947,8 +947,9 @@ class Reconstructor:
             subset = matched.correspondences.subset(point3d=rows, point2d=np.zeros(0, dtype=np.int64),
                                                     plane=np.zeros(0, dtype=np.int64))
             usual_inliers = max(self.config.detection.min_segment_features, self.config.ransac.min_inliers)
-            # a turn is remembered (and held back) from min_segment_features agreeing outliers; one
-            # frame alone decides it with twice the usual, two frames with the same turn with that many each
+            # a motion is remembered (and held back) from min_segment_features agreeing outliers; one
+            # frame alone decides it with the usual (an in-place turn: twice the usual), two frames
+            # with the same motion with min_segment_features each
             memory = self.config.detection.in_place_turn_memory_frames > 0
             ransac = dataclasses.replace(self.config.ransac, min_matches=self.config.detection.min_segment_features,
                                          min_inliers=self.config.detection.min_segment_features
