@@ -996,16 +996,17 @@ class Reconstructor:
 
     def _turn_seen_before(self, measurements: FrameMeasurements, group: list[int], T_w_c: np.ndarray,
                           T_w_old: np.ndarray) -> bool:
-        """Whether an in-place turn of the region ``group`` (its camera-frame points go to
-        their old place by ``T_w_old``; ``T_w_c`` is the camera pose), with too few agreeing
-        outliers to decide alone, was also found in one of the last
-        ``detection.in_place_turn_memory_frames`` frames. Same turn: it takes the region's
+        """Whether a motion of the region ``group`` (its camera-frame points go to their old
+        place by ``T_w_old``; ``T_w_c`` is the camera pose) with too few agreeing outliers to
+        decide alone -- an in-place turn, or a jump that turned the object so that few of its
+        features still match -- was also found in one of the last
+        ``detection.in_place_turn_memory_frames`` frames. Same motion: it takes the region's
         centroid to within ``detection.min_motion`` of the same old place, and the rotations
         differ by at most ``TURN_MEMORY_DEGREES_FACTOR`` times ``detection.min_motion_degrees``
         (each is fitted to as few as ``detection.min_segment_features`` points, and two such
-        frames together hold the usual agreeing outliers). An object that turned and came to
-        rest gives the same turn in every frame; look-alikes and a person walking give a
-        different one each time. The turn is remembered either way (in the world frame of this
+        frames together hold the usual agreeing outliers). An object that moved and came to
+        rest gives the same motion in every frame; look-alikes and a person walking give a
+        different one each time. The motion is remembered either way (in the world frame of this
         frame: a later bundle adjustment moves it by millimetres). Memory counts frame indices."""
         points = measurements.points
         indices = np.concatenate([measurements.segments.point_indices[s] for s in group]).astype(np.int64)

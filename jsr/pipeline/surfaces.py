@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from jsr.geometry import backproject_pixels, make_transform, rotation_about_axis, transform_points
+from jsr.geometry import backproject_pixels, make_transform, rotation_about_axis, rotation_angle, transform_points
 
 
 @dataclass
@@ -297,8 +297,8 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
         T = make_transform(rotations[index], translations[index])
         aligned = transform_points(T, region.points)
         aligned_normals = region.normals @ T[:3, :3].T
-        starts += [T] + [_half_turn(axis, centre) @ T
-                         for axis, centre in _symmetry_axes(aligned, aligned_normals) + model_turns]
+        starts += [T] + [_half_turn(axis, through) @ T
+                         for axis, through in _symmetry_axes(aligned, aligned_normals) + model_turns]
     # Each ICP depends on its start only: the runs go side by side, their results in order.
     with _open3d_one_thread(), ThreadPoolExecutor(ICP_WORKERS) as pool:
         coarse_fits = list(pool.map(lambda start: _icp(region, model, tree, start, voxel), starts))
@@ -413,5 +413,4 @@ def same_placement(T_a: np.ndarray, T_b: np.ndarray, centre: np.ndarray, metres:
     Measured at the region, not at the region frame's origin (the camera, 1-3 m away, where a
     small turn reads as a long shift)."""
     shift = np.linalg.norm(transform_points(T_a, centre[None]) - transform_points(T_b, centre[None]))
-    cosine = np.clip((np.trace(T_a[:3, :3].T @ T_b[:3, :3]) - 1) / 2, -1, 1)
-    return bool(shift < metres and np.degrees(np.arccos(cosine)) < degrees)
+    return bool(shift < metres and np.degrees(rotation_angle(T_a[:3, :3].T @ T_b[:3, :3])) < degrees)
