@@ -359,6 +359,27 @@ def test_segments_inside_extent_take_faces_not_the_table():
     assert extent_hull(landmarks[:5]) is None  # too few landmarks: no extent
 
 
+def test_pixels_inside_hull_agree_with_every_facet():
+    """The few-facet prefilter only skips work: the verdict is that of testing every facet."""
+    from jsr.geometry import backproject_pixels, inlier_threshold
+    from jsr.pipeline.objects import extent_hull, pixels_inside_hull
+
+    rng = np.random.default_rng(5)
+    intrinsics = SimpleNamespace(fx=300.0, fy=300.0, cx=80.0, cy=60.0)
+    rows, cols = (grid.ravel() for grid in np.mgrid[0:120:2, 0:160:2])
+    for trial in range(6):
+        landmarks = rng.normal(size=(150, 3)) * rng.uniform(0.02, 0.2, 3) + [0.0, 0.0, 1.2]
+        hull = extent_hull(landmarks)
+        depths = rng.uniform(0.6, 2.0, len(rows))
+        depths[::2] = 1.2 + rng.normal(0.0, 0.1, len(depths[::2]))  # many pixels near the object
+        inside = pixels_inside_hull(rows, cols, depths, intrinsics, np.eye(4), hull, _Noise(), 0.03)
+        points = backproject_pixels(cols, rows, depths, 300.0, 300.0, 80.0, 60.0)
+        distance = np.max(points @ hull.equations[:, :3].T + hull.equations[:, 3], axis=1)
+        expected = distance <= inlier_threshold(depths, _Noise.sigma_z_coefficient, _Noise.inlier_sigmas, 0.03)
+        assert expected.any() and not expected.all()
+        np.testing.assert_array_equal(inside, expected)
+
+
 def test_unlabelled_pixels_take_the_owner_of_most_neighbours():
     from jsr.pipeline.reconstruct import fill_unlabelled
 

@@ -300,8 +300,12 @@ def depth_adjacent_segments(label_image: np.ndarray, depth: np.ndarray, noise, s
     if not pairs:
         return np.zeros((0, 2), dtype=np.int64)
     stacked = np.concatenate(pairs).astype(np.int64)
-    unique, counts = np.unique(stacked, axis=0, return_counts=True)
-    return unique[counts >= min_boundary_pixels]
+    # one integer key per pair (a * S + b): counting keys is much faster than unique rows,
+    # and sorted keys are the pairs in lexicographic order
+    count = int(stacked.max()) + 1
+    keys, counts = np.unique(stacked[:, 0] * count + stacked[:, 1], return_counts=True)
+    keys = keys[counts >= min_boundary_pixels]
+    return np.stack([keys // count, keys % count], axis=1)
 
 
 def grow_region(seeds: list[int], candidates: np.ndarray, adjacency: np.ndarray) -> list[int]:
@@ -382,8 +386,21 @@ def pixels_inside_hull(rows: np.ndarray, cols: np.ndarray, depths: np.ndarray, i
     zs = np.asarray(depths, dtype=np.float64)
     camera = backproject_pixels(cols, rows, zs, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
     in_object = transform_points(T_o_c, camera)
-    outside = np.max(in_object @ hull.equations[:, :3].T + hull.equations[:, 3], axis=1)  # > 0: outside
-    return outside <= inlier_threshold(zs, noise.sigma_z_coefficient, noise.inlier_sigmas, margin)
+    threshold = inlier_threshold(zs, noise.sigma_z_coefficient, noise.inlier_sigmas, margin)
+    normals, offsets = hull.equations[:, :3], hull.equations[:, 3]
+    # A point's distance outside the hull is the largest over its facets (> 0: outside). Most
+    # pixels lie far from the object: a few facets facing every way already put them past
+    # the threshold, and only the rest need all facets (the result is the same).
+    few = np.unique(np.argmax(normals @ _PREFILTER_DIRECTIONS.T, axis=0))
+    candidate = np.max(in_object @ normals[few].T + offsets[few], axis=1) <= threshold
+    inside = np.zeros(len(zs), dtype=bool)
+    inside[candidate] = np.max(in_object[candidate] @ normals.T + offsets, axis=1) <= threshold[candidate]
+    return inside
+
+
+# the 6 axis and 8 diagonal directions: a hull's facets facing closest to them bound it on all sides
+_PREFILTER_DIRECTIONS = np.array([[x, y, z] for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)
+                                  if abs(x) + abs(y) + abs(z) in (1, 3)], dtype=float)
 
 
 UNSUPPORTED_STATIC_SHARE = 0.2  # a segment with a larger share of static-inlier features is supported by the static map
