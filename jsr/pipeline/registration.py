@@ -56,6 +56,7 @@ import functools
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -646,7 +647,7 @@ def _image_space_terms(
     focal_length: float,
     prior: np.ndarray | None,
     prior_sigmas: tuple[float, float],
-):
+) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None:
     """The residuals of the inliers ``masks`` as a function ``linearised(rotation (3, 3),
     translation (3,)) -> (residuals (M,), jacobian (M, 6))`` of the pose ``T_map_cam``; None
     when they are fewer than six.
@@ -746,7 +747,8 @@ def _huber_cost(residuals: np.ndarray, scale: float) -> float:
     return float(np.sum(np.where(magnitude <= scale, 0.5 * residuals**2, scale * (magnitude - 0.5 * scale))))
 
 
-def _minimise_huber(linearised, rotation: np.ndarray, translation: np.ndarray, scale: float,
+def _minimise_huber(linearised: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
+                    rotation: np.ndarray, translation: np.ndarray, scale: float,
                     max_iterations: int) -> tuple[np.ndarray, np.ndarray] | None:
     """Pose ``(rotation (3, 3), translation (3,))`` minimising the Huber cost (``scale``) of
     ``linearised(rotation, translation) -> (residuals (M,), jacobian (M, 6))``: Levenberg-
