@@ -150,7 +150,7 @@ def huber_loss(z: np.ndarray) -> np.ndarray:
     return rho
 
 
-def _huber_cost(residuals: np.ndarray, f_scale: float) -> float:
+def huber_cost(residuals: np.ndarray, f_scale: float) -> float:
     """scipy's cost for ``loss="huber"``: ``0.5 * sum(f_scale^2 * rho((r / f_scale)^2))``."""
     z = (residuals / f_scale) ** 2
     rho = np.where(z <= 1.0, z, 2.0 * np.sqrt(z) - 1.0)
@@ -435,7 +435,7 @@ class BundleProblem:
         cpu_started = time.thread_time()
         x0 = np.zeros(self.num_parameters)
         initial = self.residuals(x0)
-        initial_cost = _huber_cost(initial, config.huber_sigmas)
+        initial_cost = huber_cost(initial, config.huber_sigmas)
         message = ""
         x, final_cost, iterations, success = x0, initial_cost, 0, False
         if self.num_residuals < self.num_parameters:

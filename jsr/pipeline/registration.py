@@ -66,6 +66,7 @@ from scipy.spatial.transform import Rotation
 from jsr.config import NoiseConfig, RansacConfig
 from jsr.geometry import inlier_threshold
 from jsr.pipeline import solvers
+from jsr.pipeline.bundle import huber_cost
 
 logger = logging.getLogger(__name__)
 
@@ -742,24 +743,20 @@ def _left_jacobian_inverse(rotvec: np.ndarray) -> np.ndarray:
     return np.eye(3) - 0.5 * cross + factor * (cross @ cross)
 
 
-def _huber_cost(residuals: np.ndarray, scale: float) -> float:
-    magnitude = np.abs(residuals)
-    return float(np.sum(np.where(magnitude <= scale, 0.5 * residuals**2, scale * (magnitude - 0.5 * scale))))
-
-
 def _minimise_huber(linearised: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
                     rotation: np.ndarray, translation: np.ndarray, scale: float,
                     max_iterations: int) -> tuple[np.ndarray, np.ndarray] | None:
     """Pose ``(rotation (3, 3), translation (3,))`` minimising the Huber cost (``scale``) of
     ``linearised(rotation, translation) -> (residuals (M,), jacobian (M, 6))``: Levenberg-
-    Marquardt on iteratively reweighted normal equations, each step ``[w, dt]`` applied as
+    Marquardt on iteratively reweighted normal equations (the curvature model of
+    :func:`~jsr.pipeline.bundle.huber_loss`), each step ``[w, dt]`` applied as
     ``(Exp(w) rotation, translation + dt)``. None if the cost is not finite.
 
     Written out rather than ``scipy.optimize.least_squares``: with six unknowns and analytic
     derivatives, its finite differences and per-step SVD of the ``(M, 6)`` Jacobian were a
     quarter of the whole pipeline's run time (synth_two, 60 frames)."""
     residuals, jacobian = linearised(rotation, translation)
-    cost = _huber_cost(residuals, scale)
+    cost = huber_cost(residuals, scale)
     if not np.isfinite(cost):
         return None
     damping = 1e-3
@@ -781,7 +778,7 @@ def _minimise_huber(linearised: Callable[[np.ndarray, np.ndarray], tuple[np.ndar
             new_rotation = Rotation.from_rotvec(step[:3]).as_matrix() @ rotation
             new_translation = translation + step[3:]
             new_residuals, new_jacobian = linearised(new_rotation, new_translation)
-            new_cost = _huber_cost(new_residuals, scale)
+            new_cost = huber_cost(new_residuals, scale)
             if np.isfinite(new_cost) and new_cost <= cost:
                 improved = True
                 break
