@@ -140,6 +140,7 @@ class DetectionConfig:
     in_place_turn_memory_frames: int = 3
     min_motion: float = 0.03
     min_motion_degrees: float = 3.0
+    displaced_share: float = 0.8
     merge_gap_pixels: int = 2
     min_object_points: int = 15
 
@@ -172,7 +173,7 @@ class ObjectsConfig:
     shape_min_fitness: float = 0.5
     shape_max_seen_through: float = 0.05
     shape_min_constraint: float = 0.015
-    shape_max_color_ratio: float = 2.0
+    shape_min_texture_ratio: float = 0.5
     merge_maps: bool = True
     merge_min_shared_inliers: int = 5
     map_merge_min_inliers: int = 12
@@ -314,10 +315,11 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "objects.shape_voxel": (lambda v: v > 0, "positive"),
     "features.object_detail_margin": (lambda v: v >= 0, "at least 0"),
     "objects.shape_radius_px": (lambda v: v > 0, "positive"),
+    "detection.displaced_share": (lambda v: 0 <= v <= 1, "in [0, 1] (0: off)"),
     "objects.shape_min_fitness": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "objects.shape_max_seen_through": (lambda v: 0 <= v <= 1, "in [0, 1]"),
     "objects.shape_min_constraint": (lambda v: v >= 0, "non-negative"),
-    "objects.shape_max_color_ratio": (lambda v: v == 0 or v >= 1, "0 (only fits that landmarks confirm) or at least 1"),
+    "objects.shape_min_texture_ratio": (lambda v: 0 <= v <= 1, "in [0, 1] (0: only fits that landmarks confirm)"),
     "objects.merge_min_shared_inliers": (lambda v: v >= 1, "at least 1"),
     "objects.map_merge_min_inliers": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.free_space_min_pixels": (lambda v: v >= 1, "at least 1"),

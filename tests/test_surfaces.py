@@ -5,7 +5,8 @@ import numpy as np
 from jsr.geometry import make_transform, rotation_about_axis, transform_points
 from scipy.spatial import cKDTree
 
-from jsr.pipeline.surfaces import SurfaceSample, align_surfaces, build_model, geometric_constraint, sample_surface
+from jsr.pipeline.surfaces import (SurfaceSample, align_surfaces, build_model, geometric_constraint, sample_surface,
+                                   texture_agreement)
 
 VOXEL = 0.01
 
@@ -169,18 +170,50 @@ def test_seen_through_share_finds_a_model_placed_in_seen_empty_space():
                               3.0) is None  # no depth where the model falls: nothing to check
 
 
-def test_shape_alone_needs_a_pinned_unrivalled_fit_in_the_objects_own_colours_that_the_view_allows():
+def _textured(points, seed=1):
+    """Blotchy colours ``(N, 3)`` uint8 for any surface ``points`` ``(N, 3)``: grey, with
+    dark blotches of 3 cm around random centres."""
+    rng = np.random.default_rng(seed)
+    centres = points[rng.choice(len(points), size=12, replace=False)]
+    near = np.min(np.linalg.norm(points[:, None] - centres[None], axis=2), axis=1) < 0.03
+    colors = np.full((len(points), 3), 200, dtype=np.uint8)
+    colors[near] = 50
+    return colors
+
+
+def test_texture_agreement_sees_whether_the_texture_lines_up():
+    from jsr.pipeline.surfaces import region_model
+
+    points, colors = _box_faces()
+    camera = _box_camera()
+    seen = _view(points, colors, camera)
+    box = build_model([(camera, seen)], VOXEL)
+    region = region_model(seen, VOXEL)
+    tree = cKDTree(box.points)
+    assert texture_agreement(region, box, tree, camera, VOXEL) > 0.95
+    darker = region_model(SurfaceSample(seen.points, (0.6 * seen.colors + 20).astype(np.uint8)), VOXEL)
+    assert texture_agreement(darker, box, tree, camera, VOXEL) > 0.95  # shading: a gain and a shift
+    shuffled = region_model(SurfaceSample(seen.points, np.random.default_rng(0).permutation(seen.colors)), VOXEL)
+    assert abs(texture_agreement(shuffled, box, tree, camera, VOXEL)) < 0.1  # another object's colours
+    uniform = region_model(SurfaceSample(seen.points, np.full_like(seen.colors, 128)), VOXEL)
+    assert texture_agreement(uniform, box, tree, camera, VOXEL) == 0.0  # no texture to line up
+    far = make_transform(np.eye(3), [1.0, 0.0, 0.0]) @ camera
+    assert texture_agreement(region, box, tree, far, VOXEL) == 0.0  # nothing on the model
+
+
+def test_shape_alone_needs_a_pinned_unrivalled_fit_whose_texture_lines_up_where_the_view_allows_it():
     """Reconstructor._shape_alone: the rules that let a surface alignment re-identify a lost
     object without landmark matches. The region is the box seen from ``camera``; the right
-    alignment is ``camera`` (model <- region camera)."""
+    alignment is ``camera`` (model <- region camera). The object's own views are stubbed to
+    line up perfectly (texture agreement 1.0)."""
     from types import SimpleNamespace
 
     from jsr.config import load_config
     from jsr.pipeline.reconstruct import Reconstructor
-    from jsr.pipeline.surfaces import Alignment, region_model
+    from jsr.pipeline.surfaces import Alignment, region_model, same_placement
 
     config = load_config(None)
-    owner = SimpleNamespace(config=config, intrinsics=_Intrinsics(), _surface_self_residual=lambda object_map: 0.05)
+    owner = SimpleNamespace(config=config, intrinsics=_Intrinsics(), _surface_self_texture=lambda object_map: 1.0)
     points, colors = _box_faces()
     camera = _box_camera()
     seen = _view(points, colors, camera)
@@ -191,17 +224,32 @@ def test_shape_alone_needs_a_pinned_unrivalled_fit_in_the_objects_own_colours_th
     shifted = make_transform(np.eye(3), [0.03, 0.0, 0.0]) @ camera
 
     def alone(alignments, region=region, model=box, view=view):
-        return Reconstructor._shape_alone(owner, SimpleNamespace(object_id=1), region, model, alignments, view)
+        """The fit _shape_alone returns, as ``right``, ``"other"`` (another placement) or None."""
+        chosen = Reconstructor._shape_alone(owner, SimpleNamespace(object_id=1), region, model, alignments, view)
+        if chosen is None:
+            return None
+        centre = region.points.mean(axis=0)
+        return right if same_placement(chosen.T_model_region, camera, centre, 0.005, 0.5) else "other"
 
     right = Alignment(camera, 0.98, 0.07)
     assert alone([right]) is right
+    # a fit a few millimetres off, pinned by the box's shape, is polished by point-to-plane ICP
+    nudge = make_transform(rotation_about_axis([0.0, 1.0, 0.0], np.radians(2.0)), [0.004, 0.0, 0.0])
+    assert alone([Alignment(nudge @ camera, 0.98, 0.07)]) is right
     assert alone([Alignment(camera, 0.6, 0.07)]) is not None  # the rest of the region: sides never seen
     assert alone([Alignment(camera, 0.4, 0.07)]) is None  # too little of the region on the model
-    too_colourful = 1.2 * config.objects.shape_max_color_ratio * 0.05
-    assert alone([Alignment(camera, 0.98, too_colourful)]) is None  # beyond the object's own views' agreement
-    assert alone([right, Alignment(turned, 0.95, 0.09)]) is None  # a turned fit nearly as good: ambiguous
-    assert alone([right, Alignment(turned, 0.95, 0.2)]) is right  # the turned fit's colours disagree
+    shuffled = region_model(SurfaceSample(seen.points, np.random.default_rng(0).permutation(seen.colors)), VOXEL)
+    assert alone([right], region=shuffled) is None  # the shape fits, the texture does not
+    # a turned fit listed first (better colour residual) and as complete: its texture does not line up
+    assert alone([Alignment(turned, 0.95, 0.05), right]) is right
     assert alone([right, Alignment(shifted, 0.97, 0.07)]) is right  # 3 cm apart: the same fit
+    # a model holding the box twice, 0.6 m apart, and a view with depth on the region only: a
+    # fit onto the other copy lines up as well, and nothing rules it out
+    copy = make_transform(np.eye(3), [0.6, 0.0, 0.0])
+    twice = build_model([(camera, seen), (copy @ camera, seen)], VOXEL)
+    region_only = _depth_view(seen.points.astype(float))
+    assert alone([right], model=twice, view=region_only) is right
+    assert alone([right, Alignment(copy @ camera, 0.98, 0.07)], model=twice, view=region_only) is None
     # 15 cm nearer the camera, in space the view saw empty: neither the choice nor a rival
     nearer = camera @ np.linalg.inv(make_transform(np.eye(3), [0.0, 0.0, -0.15]))
     assert alone([Alignment(nearer, 0.97, 0.06), right]) is right
@@ -210,15 +258,30 @@ def test_shape_alone_needs_a_pinned_unrivalled_fit_in_the_objects_own_colours_th
                           wall_depth=1.6)
     assert alone([right], view=farther) is None
     assert alone([right], view=_depth_view(np.zeros((0, 3)))) is None  # no depth to check it against
-    cylinder_points, cylinder_colors = _cylinder_side()
-    cylinder_seen = _view(cylinder_points, cylinder_colors, camera)
+    # the object's own views: the region must line up at least half as well as they do
+    owner._surface_self_texture = lambda object_map: 0.4
+    assert alone([right]) is right
+    blend = np.random.default_rng(1).integers(0, 256, seen.colors.shape)
+    noisy = region_model(SurfaceSample(seen.points, (0.3 * seen.colors + 0.7 * blend).astype(np.uint8)), VOXEL)
+    noisy_agreement = texture_agreement(noisy, box, cKDTree(box.points), camera, VOXEL)
+    assert 0.25 < noisy_agreement < 0.6
+    assert alone([right], region=noisy) is right  # within half of how well the own views line up
+    owner._surface_self_texture = lambda object_map: 1.0
+    assert alone([right], region=noisy) is None
+    owner._surface_self_texture = lambda object_map: 0.1
+    assert alone([right]) is None  # the object's own views hardly line up (one colour): nothing to trust
+    owner._surface_self_texture = lambda object_map: None
+    assert alone([right]) is None  # one view of the object: nothing to compare with
+    owner._surface_self_texture = lambda object_map: 1.0
+    # a cylinder's side turns about its axis: its shape does not pin the fit, and its texture,
+    # though it lines up, is not trusted to
+    cylinder_points, _ = _cylinder_side()
+    cylinder_seen = _view(cylinder_points, _textured(cylinder_points), camera)
     cylinder = build_model([(camera, cylinder_seen)], VOXEL)
-    assert alone([right], region_model(cylinder_seen, VOXEL), cylinder,
-                 _depth_view(cylinder_seen.points.astype(float))) is None  # turns about its axis: not pinned
-    owner._surface_self_residual = lambda object_map: None
-    assert alone([right]) is None  # one view of the object: nothing to compare colours with
-    owner._surface_self_residual = lambda object_map: 0.05
-    owner.config = load_config(None, ["objects.shape_max_color_ratio=0"])
+    cylinder_region = region_model(cylinder_seen, VOXEL)
+    assert texture_agreement(cylinder_region, cylinder, cKDTree(cylinder.points), camera, VOXEL) > 0.9
+    assert alone([right], cylinder_region, cylinder, _depth_view(cylinder_seen.points.astype(float))) is None
+    owner.config = load_config(None, ["objects.shape_min_texture_ratio=0"])
     assert alone([right]) is None  # switched off: only fits that landmarks confirm
 
 

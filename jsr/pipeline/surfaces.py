@@ -12,8 +12,9 @@ prediction-based feature matching and registration, or, when no landmarks match 
 showed the object from a view too far from its map's for SIFT), when the surface alone is
 certain: at least half of the region on the model (``objects.shape_min_fitness``; the rest may
 be sides the map never saw), a model that, so placed, the view does not see through
-(:func:`seen_through_share`), a shape that pins the fit (:func:`geometric_constraint`),
-colours that agree as the object's own views agree, and no rival fit (``objects.shape_*``).
+(:func:`seen_through_share`), a texture that lines up nearly as well as the object's own
+views line up with each other (:func:`texture_agreement`), a shape that pins the fit
+(:func:`geometric_constraint`), and no rival fit (``objects.shape_*``).
 
 Frames: ``camera`` is the frame of the view a sample was taken in; ``model`` is the object
 map's frame. Transforms are ``(4, 4)`` and map points of the right-hand frame into the left.
@@ -177,6 +178,14 @@ def _icp(region: SurfaceModel, model: SurfaceModel, tree: cKDTree, T: np.ndarray
     return T
 
 
+def refine_fit(region: SurfaceModel, model: SurfaceModel, model_tree: cKDTree, T: np.ndarray,
+               voxel: float) -> np.ndarray:
+    """``T`` (model <- region) refined by point-to-plane ICP: geometry alone, for a fit whose
+    shape pins it (:func:`geometric_constraint`); coloured ICP's fits are pulled off by the
+    shading of an object that turned."""
+    return _icp(region, model, model_tree, T, voxel)
+
+
 ICP_WORKERS = 2  # ICP runs from independent starts run on this many threads (results kept in order)
 
 
@@ -333,6 +342,29 @@ def color_residual(region: SurfaceModel, model: SurfaceModel, model_tree: cKDTre
     if not on.any():
         return 1.0
     return float(np.abs(region.colors[on] - model.colors[nearest[on]]).mean())
+
+
+UNIFORM_COLOR_POWER = (1.0 / 255) ** 2  # colours spread less than one level of 255 about their mean are uniform
+
+
+def texture_agreement(region: SurfaceModel, model: SurfaceModel, model_tree: cKDTree, T: np.ndarray,
+                      voxel: float) -> float:
+    """Normalised cross-correlation of the colours of the region's points on the model
+    surface under ``T`` (model <- region) with their nearest model points: each RGB channel
+    less its mean over those points, correlated over all three channels at once. 1: the
+    texture lines up; about 0: it does not (or there is none). Unlike the colour residual it
+    ignores a shift and a common gain of the colours, which a turned object's shading
+    changes. 0.0 when fewer than 10 region points lie on the model or either side is uniform."""
+    distance, nearest = model_tree.query(transform_points(T, region.points), distance_upper_bound=1.5 * voxel)
+    on = np.isfinite(distance)
+    if on.sum() < 10:
+        return 0.0
+    ours = region.colors[on] - region.colors[on].mean(axis=0)
+    theirs = model.colors[nearest[on]] - model.colors[nearest[on]].mean(axis=0)
+    ours_power, theirs_power = float(np.sum(ours ** 2)), float(np.sum(theirs ** 2))
+    if min(ours_power, theirs_power) < UNIFORM_COLOR_POWER * len(ours):  # spread below a grey level: uniform
+        return 0.0
+    return float(np.sum(ours * theirs) / np.sqrt(ours_power * theirs_power))
 
 
 def geometric_constraint(region: SurfaceModel, model: SurfaceModel, model_tree: cKDTree, T: np.ndarray,
