@@ -891,3 +891,33 @@ def test_face_with_few_3d_features_grows_into_its_object_when_it_moved_in(violat
     owner = np.array([1, 0, 0])
     assert reconstructor._grow(SimpleNamespace(), measurements, [0], np.zeros(40, dtype=bool), owner) == grown
     reconstructor.close()
+
+
+def test_landmarks_that_agree_from_two_far_fits_overrule_the_surface():
+    """Reconstructor._landmarks_agree_elsewhere: landmark registrations away from the surface
+    fits that predicted them are trusted only when two fits far apart (beyond 20 cm or 30
+    degrees of each other) led them to the same pose of the same object."""
+    from jsr.geometry import make_transform, rotation_about_axis
+
+    centre = np.array([0.0, 0.0, 1.0])
+    up = [0.0, 0.0, 1.0]
+
+    def about_centre(degrees, shift=(0.0, 0.0, 0.0)):
+        rotation = rotation_about_axis(up, np.radians(degrees))
+        return make_transform(rotation, centre - rotation @ centre + np.asarray(shift))
+
+    def registration(T, inliers):
+        return SimpleNamespace(transformation=T, num_inliers=inliers)
+
+    truth = about_centre(20.0, (0.05, 0.0, 0.0))
+    box, other_box = object(), object()
+    first = (box, about_centre(180.0), "matches", registration(truth, 9))
+    second = (box, about_centre(80.0), "matches", registration(about_centre(21.0, (0.052, 0.0, 0.0)), 11))
+    agree = Reconstructor._landmarks_agree_elsewhere
+    assert agree([first, second], centre) is second  # the one with most inliers
+    assert agree([first], centre) is None  # one registration away from its fit: maybe chance
+    near_first = (box, about_centre(170.0), "matches", registration(truth, 12))
+    assert agree([first, near_first], centre) is None  # two fits 10 degrees apart: one start
+    assert agree([first, (other_box, *second[1:])], centre) is None  # two objects
+    elsewhere = (box, about_centre(80.0), "matches", registration(about_centre(60.0), 11))
+    assert agree([first, elsewhere], centre) is None  # the landmarks disagree with each other

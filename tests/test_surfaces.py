@@ -144,6 +144,19 @@ def _box_camera():
     return look_at(np.array([0.45, 0.4, 0.5]), np.zeros(3))
 
 
+def _box_scene():
+    """The box seen from :func:`_box_camera` in front of a wall 1.6 m away: ``camera``
+    (``T_model_camera``), the view's sample, the box's model, the region (the sample as a
+    model, camera frame) and the view's depth."""
+    from jsr.pipeline.surfaces import region_model
+
+    points, colors = _box_faces()
+    camera = _box_camera()
+    seen = _view(points, colors, camera)
+    return (camera, seen, build_model([(camera, seen)], VOXEL), region_model(seen, VOXEL),
+            _depth_view(seen.points.astype(float), wall_depth=1.6))
+
+
 def test_seen_through_share_finds_a_model_placed_in_seen_empty_space():
     """A right placement puts the model on the surface the view measured; one 10 cm towards
     the camera, or 15 cm aside against a wall behind the box, puts it in space seen empty."""
@@ -214,12 +227,7 @@ def test_shape_alone_needs_a_pinned_unrivalled_fit_whose_texture_lines_up_where_
 
     config = load_config(None)
     owner = SimpleNamespace(config=config, intrinsics=_Intrinsics(), _surface_self_texture=lambda object_map: 1.0)
-    points, colors = _box_faces()
-    camera = _box_camera()
-    seen = _view(points, colors, camera)
-    box = build_model([(camera, seen)], VOXEL)
-    region = region_model(seen, VOXEL)
-    view = _depth_view(seen.points.astype(float), wall_depth=1.6)
+    camera, seen, box, region, view = _box_scene()
     turned = make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.pi), np.zeros(3)) @ camera
     shifted = make_transform(np.eye(3), [0.03, 0.0, 0.0]) @ camera
 
@@ -283,6 +291,30 @@ def test_shape_alone_needs_a_pinned_unrivalled_fit_whose_texture_lines_up_where_
     assert alone([right], cylinder_region, cylinder, _depth_view(cylinder_seen.points.astype(float))) is None
     owner.config = load_config(None, ["objects.shape_min_texture_ratio=0"])
     assert alone([right]) is None  # switched off: only fits that landmarks confirm
+
+
+def test_surface_agrees_with_a_landmark_pose_where_it_lies_on_the_model_the_view_allows_it_and_texture_lines_up():
+    """Reconstructor._surface_agrees: a pose the landmarks found, checked by the surface."""
+    from types import SimpleNamespace
+
+    from jsr.config import load_config
+    from jsr.pipeline.reconstruct import Reconstructor
+    from jsr.pipeline.surfaces import region_model
+
+    owner = SimpleNamespace(config=load_config(None), intrinsics=_Intrinsics(),
+                            _surface_self_texture=lambda object_map: 1.0)
+    camera, seen, box, region, view = _box_scene()
+
+    def agrees(T, region=region):
+        return Reconstructor._surface_agrees(owner, SimpleNamespace(object_id=1), region, box, T, view)
+
+    assert agrees(camera)
+    assert not agrees(camera @ np.linalg.inv(make_transform(np.eye(3), [0.0, 0.0, -0.15])))  # seen through
+    assert not agrees(make_transform(np.eye(3), [0.5, 0.0, 0.0]) @ camera)  # off the model
+    shuffled = region_model(SurfaceSample(seen.points, np.random.default_rng(0).permutation(seen.colors)), VOXEL)
+    assert not agrees(camera, region=shuffled)  # the texture does not line up
+    owner._surface_self_texture = lambda object_map: None
+    assert not agrees(camera)  # nothing to compare the texture with
 
 
 def test_same_placement_compares_alignments_at_the_region():

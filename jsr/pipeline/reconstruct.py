@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
 import time
 from dataclasses import dataclass, field
@@ -1167,7 +1168,10 @@ class Reconstructor:
         for prediction-based matching of the region's keypoints with the object's landmarks
         (``objects.shape_radius_px``). The registration with most inliers wins if it succeeds
         with at least ``ransac.min_inliers`` inliers and stays near its prediction (20 cm, 30
-        degrees): the landmarks confirm the shape, which alone fits a box four ways.
+        degrees): the landmarks confirm the shape, which alone fits a box four ways. Landmarks
+        that register away from their fits win when two fits far apart lead them to the same
+        pose (:meth:`_landmarks_agree_elsewhere`), or when the surface agrees with their pose
+        (:meth:`_surface_agrees`).
 
         A jump that turns the object far shows it from sides whose landmarks no longer match
         (SIFT does not survive a 50-degree change of view), so when no landmarks confirm any
@@ -1182,7 +1186,7 @@ class Reconstructor:
         region_centre = region.points.mean(axis=0)  # where alignments are compared (same_placement)
         best = None
         fits = []  # (object map, its surface model, the alignments): for the surface-alone decision
-        landmarks_disagree = False  # landmarks registered the region, away from every surface fit
+        away = []  # (object map, surface fit, matches, registration) of landmarks that registered away from their fit
         for object_map in lost:
             model = self._surface_model(object_map)
             if model is None:
@@ -1210,15 +1214,22 @@ class Reconstructor:
                     continue
                 if not same_placement(T_o_c, result.transformation, region_centre, SHAPE_CONFIRM_METRES,
                                       SHAPE_CONFIRM_DEGREES):
-                    landmarks_disagree = True
+                    away.append((object_map, T_o_c, matched, result))
                     continue
                 if best is None or result.num_inliers > best[3].num_inliers:
                     best = (object_map, T_o_c, matched, result)
         shape_alone = []
-        if best is None and not landmarks_disagree:
-            # this frame's depth, camera frame: would a model placed by an alignment be seen through?
-            view = DepthView(np.asarray(frame.depth[::SURFACE_STRIDE, ::SURFACE_STRIDE], dtype=np.float32),
-                             np.eye(4), SURFACE_STRIDE)
+        # this frame's depth, camera frame: would a model placed by an alignment be seen through?
+        view = DepthView(np.asarray(frame.depth[::SURFACE_STRIDE, ::SURFACE_STRIDE], dtype=np.float32),
+                         np.eye(4), SURFACE_STRIDE)
+        if best is None:
+            best = self._landmarks_agree_elsewhere(away, region_centre)
+        if best is None and away:
+            models = {object_map.object_id: model for object_map, model, _ in fits}
+            best = next((item for item in sorted(away, key=lambda item: -item[3].num_inliers)
+                         if self._surface_agrees(item[0], region, models[item[0].object_id],
+                                                 item[3].transformation, view)), None)
+        if best is None and not away:
             shape_alone = [(object_map, alone) for object_map, model, alignments in fits
                            if (alone := self._shape_alone(object_map, region, model, alignments, view)) is not None]
         if len(shape_alone) == 1:  # two lost objects fitting as well: neither is trusted
@@ -1246,6 +1257,49 @@ class Reconstructor:
                     result.num_matches)
         self._claim_region(measurements, group, outcomes[object_map.object_id], matched, result, assignment)
         return True
+
+    @staticmethod
+    def _landmarks_agree_elsewhere(away: list, region_centre: np.ndarray):
+        """Of the registrations that the landmarks found away from the surface fit that
+        predicted them (``away``: ``(object map, T_o_c prediction, matches, registration)``),
+        the one with most inliers when another one of the same object, predicted by a fit
+        elsewhere (beyond SHAPE_CONFIRM of it), found the same pose (within SHAPE_MODE): the
+        surface fits were wrong, the landmarks found the object from two starting guesses
+        (synth_two_sim seed 2: three fits 58-171 degrees off, their landmark registrations all
+        within 6 degrees of the truth). None otherwise: one registration away from its fit
+        may be chance matches."""
+        agreeing = []
+        for a, b in itertools.combinations(away, 2):
+            if a[0] is b[0] and same_placement(a[3].transformation, b[3].transformation, region_centre,
+                                               SHAPE_MODE_METRES, SHAPE_MODE_DEGREES) \
+                    and not same_placement(a[1], b[1], region_centre, SHAPE_CONFIRM_METRES, SHAPE_CONFIRM_DEGREES):
+                agreeing += [a, b]
+        return max(agreeing, key=lambda item: item[3].num_inliers) if agreeing else None
+
+    def _surface_agrees(self, object_map: ObjectMap, region: SurfaceModel, model: SurfaceModel,
+                        T_o_c: np.ndarray, view: DepthView) -> bool:
+        """Whether the object's surface agrees with a pose that its landmarks found (``T_o_c``,
+        object <- camera) away from the surface fit that guided their matching: the region
+        on the model (``objects.shape_min_fitness``), the model not seen through
+        (``objects.shape_max_seen_through``) and its texture lining up as in
+        :meth:`_shape_alone`. The landmarks pin the pose; the surface rules out chance
+        matches (synth_two_sim seed 2: one registration 0.9 degrees off the truth, under a
+        fit 83 degrees off)."""
+        config = self.config.objects
+        own_texture = self._surface_self_texture(object_map)
+        if config.shape_min_texture_ratio <= 0 or own_texture is None or own_texture < SELF_TEXTURE_MIN:
+            return False
+        tree = cKDTree(model.points)
+        if fitness(region, tree, T_o_c, config.shape_voxel) < config.shape_min_fitness:
+            return False
+        share = seen_through_share(model, T_o_c, view, self.intrinsics, self.config.noise,
+                                   SHAPE_SEEN_THROUGH_VOXELS * config.shape_voxel, SHAPE_SEEN_THROUGH_SIGMAS)
+        if share is None or share > config.shape_max_seen_through:
+            return False
+        texture = texture_agreement(region, model, tree, T_o_c, config.shape_voxel) / own_texture
+        logger.debug("object %d: landmark pose away from the surface fits: texture agreement %.2f, %.3f seen "
+                     "through", object_map.object_id, texture, share)
+        return texture >= config.shape_min_texture_ratio
 
     def _shape_alone(self, object_map: ObjectMap, region: SurfaceModel, model: SurfaceModel,
                      alignments: list[Alignment], view: DepthView) -> Alignment | None:
