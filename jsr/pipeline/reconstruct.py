@@ -1259,7 +1259,7 @@ class Reconstructor:
         return True
 
     @staticmethod
-    def _landmarks_agree_elsewhere(away: list, region_centre: np.ndarray):
+    def _landmarks_agree_elsewhere(away: list[tuple], region_centre: np.ndarray) -> tuple | None:
         """Of the registrations that the landmarks found away from the surface fit that
         predicted them (``away``: ``(object map, T_o_c prediction, matches, registration)``),
         the one with most inliers when another one of the same object, predicted by a fit
