@@ -190,12 +190,15 @@ class StaticRegistration:
 
 
 def _little_static_support(measurements: FrameMeasurements, static_inliers: np.ndarray) -> np.ndarray:
-    """``(S,)`` bool: segments at most 20% of whose 3D point features are static inliers
-    (``static_inliers`` ``(N,)`` bool), so that the static map does not show them in place."""
+    """``(S,)`` bool: segments at most UNSUPPORTED_STATIC_SHARE of whose 3D point features are
+    static inliers (``static_inliers`` ``(N,)`` bool), so that the static map does not show
+    them in place (featureless segments included)."""
     points, segments = measurements.points, measurements.segments
-    static_support = np.array([static_inliers[np.asarray(i, dtype=np.int64)].sum() for i in segments.point_indices])
-    three_d = np.array([points.has_depth[np.asarray(i, dtype=np.int64)].sum() for i in segments.point_indices])
-    return static_support <= 0.2 * np.maximum(three_d, 1)
+    point_segment = segments.segment_of_points(len(points))
+    in_segment = point_segment >= 0
+    static_support = np.bincount(point_segment[in_segment & static_inliers], minlength=len(segments))
+    three_d = np.bincount(point_segment[in_segment & points.has_depth], minlength=len(segments))
+    return static_support <= UNSUPPORTED_STATIC_SHARE * np.maximum(three_d, 1)
 
 
 def static_inlier_landmarks(static: StaticRegistration) -> np.ndarray:
