@@ -86,6 +86,18 @@ def pose_to_tum(poses: np.ndarray) -> np.ndarray:
     return rows.reshape(poses.shape[:-2] + (7,))
 
 
+def cross_matrices(vectors: np.ndarray) -> np.ndarray:
+    """``(..., 3, 3)`` matrices of the cross product with ``vectors`` ``(..., 3)``:
+    ``cross_matrices(v) @ u == np.cross(v, u)``."""
+    vectors = np.asarray(vectors, dtype=float)
+    out = np.zeros(vectors.shape[:-1] + (3, 3))
+    x, y, z = vectors[..., 0], vectors[..., 1], vectors[..., 2]
+    out[..., 0, 1], out[..., 0, 2] = -z, y
+    out[..., 1, 0], out[..., 1, 2] = z, -x
+    out[..., 2, 0], out[..., 2, 1] = -y, x
+    return out
+
+
 def rotation_about_axis(axis: np.ndarray, angle: float) -> np.ndarray:
     """``(3, 3)`` rotation of ``angle`` radians about ``axis`` (any length > 0)."""
     axis = np.asarray(axis, dtype=float)

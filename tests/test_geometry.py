@@ -61,3 +61,12 @@ def test_look_at_points_camera_z_at_target():
     assert np.allclose(pose[:3, 2], [-1, 0, 0])
     assert np.allclose(pose[:3, 1], [0, 0, -1])  # image down is world down
     assert np.isclose(np.linalg.det(pose[:3, :3]), 1.0)
+
+
+def test_cross_matrices_multiply_as_the_cross_product():
+    from jsr.geometry import cross_matrices
+
+    rng = np.random.default_rng(0)
+    v, u = rng.normal(size=(5, 3)), rng.normal(size=(5, 3))
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", cross_matrices(v), u), np.cross(v, u), atol=1e-12)
+    np.testing.assert_allclose(cross_matrices(v[0]) @ u[0], np.cross(v[0], u[0]), atol=1e-12)

@@ -294,6 +294,12 @@ def test_surface_pose_result_links_landmarks_only_when_enough_agree() -> None:
     assert unlinked.success and unlinked.num_inliers == 0 and not unlinked.inliers_point3d.any()
     np.testing.assert_array_equal(unlinked.transformation, np.eye(4))
     assert unlinked.reason  # says where the pose came from
+    # fewer matches than ransac.min_matches (too few to register) link all the same
+    few = corr.subset(np.arange(6), np.zeros(0, dtype=int), np.zeros(0, dtype=int))
+    assert few.num_matches < RANSAC.min_matches
+    assert registration.surface_pose_result(np.eye(4), few, RANSAC, NOISE, min_links=5).num_inliers == 6
+    empty = registration.surface_pose_result(np.eye(4), Correspondences(), RANSAC, NOISE, min_links=5)
+    assert empty.success and empty.num_inliers == 0
 
 
 def test_2d_landmark_behind_the_camera_is_an_outlier() -> None:

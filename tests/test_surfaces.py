@@ -194,6 +194,14 @@ def _textured(points, seed=1):
     return colors
 
 
+def _rings(points, width=0.05):
+    """Colours ``(N, 3)`` uint8 in bands of ``width`` m along z: a texture that a turn about
+    the z axis leaves as it is."""
+    colors = np.full((len(points), 3), 200, dtype=np.uint8)
+    colors[np.floor(points[:, 2] / width).astype(int) % 2 == 0] = 50
+    return colors
+
+
 def test_texture_agreement_sees_whether_the_texture_lines_up():
     from jsr.pipeline.surfaces import region_model
 
@@ -227,6 +235,7 @@ def test_shape_alone_needs_a_pinned_unrivalled_fit_whose_texture_lines_up_where_
 
     config = load_config(None)
     owner = SimpleNamespace(config=config, intrinsics=_Intrinsics(), _surface_self_texture=lambda object_map: 1.0)
+    owner._anchors_pin = lambda *args: Reconstructor._anchors_pin(owner, *args)
     camera, seen, box, region, view = _box_scene()
     turned = make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.pi), np.zeros(3)) @ camera
     shifted = make_transform(np.eye(3), [0.03, 0.0, 0.0]) @ camera
@@ -281,16 +290,92 @@ def test_shape_alone_needs_a_pinned_unrivalled_fit_whose_texture_lines_up_where_
     owner._surface_self_texture = lambda object_map: None
     assert alone([right]) is None  # one view of the object: nothing to compare with
     owner._surface_self_texture = lambda object_map: 1.0
-    # a cylinder's side turns about its axis: its shape does not pin the fit, and its texture,
-    # though it lines up, is not trusted to
+    # a cylinder's side turns about its axis: its shape does not pin the fit; painted in rings,
+    # its texture, though it lines up, does not either (it is the same all along the turn)
     cylinder_points, _ = _cylinder_side()
+    cylinder_seen = _view(cylinder_points, _rings(cylinder_points), camera)
+    cylinder = build_model([(camera, cylinder_seen)], VOXEL)
+    cylinder_region = region_model(cylinder_seen, VOXEL)
+    assert texture_agreement(cylinder_region, cylinder, cKDTree(cylinder.points), camera, VOXEL) > 0.7
+    assert alone([right], cylinder_region, cylinder, _depth_view(cylinder_seen.points.astype(float))) is None
+    # blotchy, its texture peaks at the right turn: a fit 6 degrees off is moved there
     cylinder_seen = _view(cylinder_points, _textured(cylinder_points), camera)
     cylinder = build_model([(camera, cylinder_seen)], VOXEL)
     cylinder_region = region_model(cylinder_seen, VOXEL)
-    assert texture_agreement(cylinder_region, cylinder, cKDTree(cylinder.points), camera, VOXEL) > 0.9
-    assert alone([right], cylinder_region, cylinder, _depth_view(cylinder_seen.points.astype(float))) is None
+    off = make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.radians(6.0)), np.zeros(3)) @ camera
+    pinned = Reconstructor._shape_alone(owner, SimpleNamespace(object_id=1), cylinder_region, cylinder,
+                                        [Alignment(off, 0.98, 0.07)], _depth_view(cylinder_seen.points.astype(float)))
+    assert pinned is not None
+    assert same_placement(pinned.T_model_region, camera, cylinder_region.points.mean(axis=0), 0.005, 1.5)
     owner.config = load_config(None, ["objects.shape_min_texture_ratio=0"])
     assert alone([right]) is None  # switched off: only fits that landmarks confirm
+
+
+def test_shape_alone_lets_agreeing_landmark_matches_pin_a_fit_that_the_shape_leaves_free():
+    """Reconstructor._shape_alone with ``landmark_anchors``: a cylinder's side painted in
+    rings, its fit turned 6 degrees about the axis (free for its shape and texture), and
+    keypoints on it matched to landmarks at their true places. Five spread matches that agree
+    with the fit pin it and refine it onto the truth; four do not."""
+    from types import SimpleNamespace
+
+    from jsr.config import load_config
+    from jsr.pipeline.reconstruct import Reconstructor
+    from jsr.pipeline.surfaces import Alignment, region_model, same_placement
+
+    config = load_config(None)
+    owner = SimpleNamespace(config=config, intrinsics=_Intrinsics(), _surface_self_texture=lambda object_map: 1.0)
+    owner._anchors_pin = lambda *args: Reconstructor._anchors_pin(owner, *args)
+    camera = _box_camera()
+    cylinder_points, _ = _cylinder_side()
+    seen = _view(cylinder_points, _rings(cylinder_points), camera)
+    cylinder, region = build_model([(camera, seen)], VOXEL), region_model(seen, VOXEL)
+    view = _depth_view(seen.points.astype(float))
+    turned = make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.radians(6.0)), np.zeros(3)) @ camera
+    fit = Alignment(turned, 0.95, 0.07)
+    centre = region.points.mean(axis=0)
+    # keypoints: region points (camera frame) at spread heights and angles of the side
+    rng = np.random.default_rng(3)
+    spread = region.points[rng.choice(len(region.points), size=5, replace=False)]
+
+    def anchors_from(keypoints, matched_keypoints=None):
+        """Landmarks at the true places of ``keypoints``, matched to ``matched_keypoints``
+        (default: the same keypoints, the right matches)."""
+        landmarks = transform_points(camera, keypoints)
+        keypoints = keypoints if matched_keypoints is None else matched_keypoints
+
+        def anchors(T):
+            agree = np.linalg.norm(transform_points(T, keypoints) - landmarks, axis=1) <= 0.015
+            return keypoints[agree], landmarks[agree]
+        return anchors
+
+    def alone(anchors):
+        return Reconstructor._shape_alone(owner, SimpleNamespace(object_id=1), region, cylinder, [fit], view, anchors)
+
+    assert alone(None) is None  # the shape alone leaves the turn free
+    pinned = alone(anchors_from(spread))
+    assert pinned is not None
+    assert same_placement(pinned.T_model_region, camera, centre, 0.003, 0.5)  # refined onto the truth
+    assert alone(anchors_from(spread[:4])) is None  # fewer than detection.min_segment_features
+    assert alone(anchors_from(spread, spread[::-1])) is None  # wrong matches: none agree with the fit
+
+
+def test_refine_fit_holds_a_sliding_surface_by_its_anchors():
+    """refine_fit: a flat face slid 2 cm along itself stays slid under point-to-plane ICP;
+    three landmark matches (anchors) bring it back."""
+    from jsr.pipeline.surfaces import refine_fit, region_model
+
+    points, colors = _box_faces()
+    face = points[:, 2] == points[:, 2].max()
+    camera = _box_camera()
+    seen = _view(points[face], colors[face], camera)
+    model, region = build_model([(camera, seen)], VOXEL), region_model(seen, VOXEL)
+    slid = make_transform(np.eye(3), [0.02, 0.0, 0.0]) @ camera
+    tree = cKDTree(model.points)
+    geometry_only = refine_fit(region, model, tree, slid, VOXEL)
+    assert np.linalg.norm(geometry_only[:3, 3] - camera[:3, 3]) > 0.015
+    keypoints = region.points[[0, len(region.points) // 2, len(region.points) - 1]]
+    anchored = refine_fit(region, model, tree, slid, VOXEL, anchors=(keypoints, transform_points(camera, keypoints)))
+    assert np.allclose(anchored, camera, atol=1e-3)
 
 
 def test_surface_agrees_with_a_landmark_pose_where_it_lies_on_the_model_the_view_allows_it_and_texture_lines_up():
@@ -329,3 +414,53 @@ def test_same_placement_compares_alignments_at_the_region():
     assert same_placement(np.eye(4), about_region, centre, 0.1, 15.0)
     assert not same_placement(np.eye(4), make_transform(rotation_about_axis([0.0, 1.0, 0.0], np.radians(14)),
                                                          np.zeros(3)), centre, 0.1, 15.0)  # 29 cm at the region
+
+
+def test_texture_sweep_finds_where_a_cylinder_turned_about_its_axis():
+    """free_turn finds a cylinder side's axis; texture_sweep turns a fit 100 degrees off about
+    it back to within a sweep step of the truth, and leaves a box corner (no free turn) alone."""
+    from jsr.pipeline.surfaces import free_turn, region_model, texture_sweep
+
+    camera = _box_camera()
+    points, _ = _cylinder_side(arc_degrees=200.0)
+    seen = _view(points, _textured(points), camera)
+    cylinder, region = build_model([(camera, seen)], VOXEL), region_model(seen, VOXEL)
+    tree = cKDTree(cylinder.points)
+    axis, point = free_turn(region, cylinder, tree, camera, VOXEL)
+    assert abs(axis[2]) > 0.99 and np.linalg.norm(point[:2]) < VOXEL  # the z axis through the origin
+    off = make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.radians(100.0)), np.zeros(3)) @ camera
+    swept = texture_sweep(region, cylinder, tree, off, VOXEL, 0.3)
+    assert swept is not None
+    error = np.degrees(np.arccos(np.clip((np.trace(swept[:3, :3].T @ camera[:3, :3]) - 1) / 2, -1, 1)))
+    assert error <= 15.0  # within a step: coloured ICP and the landmarks take it from there
+    box_points, box_colors = _box_faces()
+    box_seen = _view(box_points, box_colors, camera)
+    box = build_model([(camera, box_seen)], VOXEL)
+    assert free_turn(region_model(box_seen, VOXEL), box, cKDTree(box.points), camera, VOXEL) is None
+
+
+def test_anchors_pin_the_motions_a_surface_leaves_free():
+    """anchors_pin: on a flat face (free: two slides and the turn about its normal) anchors
+    spread over it pin the fit, anchors at one spot leave the turn about them free; on a
+    cylinder's side (free: its turn and its slide) one spot pins both; a box corner has no
+    free motion to pin."""
+    from jsr.pipeline.surfaces import anchors_pin, region_model
+
+    camera = _box_camera()
+    points, colors = _box_faces()
+    face = points[:, 2] == points[:, 2].max()
+
+    def pins(surface_points, surface_colors, anchors):
+        seen = _view(surface_points, surface_colors, camera)
+        model, region = build_model([(camera, seen)], VOXEL), region_model(seen, VOXEL)
+        return anchors_pin(region, model, cKDTree(model.points), camera, VOXEL, 0.015,
+                           transform_points(np.linalg.inv(camera), anchors), 0.5)
+
+    spread = np.array([[0.1, 0.08, 0.06], [-0.1, 0.08, 0.06], [0.0, -0.08, 0.06]])
+    spot = np.array([[0.05, 0.02, 0.06], [0.052, 0.021, 0.06], [0.049, 0.018, 0.06]])
+    assert pins(points[face], colors[face], spread)
+    assert not pins(points[face], colors[face], spot)
+    cylinder_points, _ = _cylinder_side()
+    on_cylinder = cylinder_points[[0, 1, 2]]
+    assert pins(cylinder_points, _textured(cylinder_points), on_cylinder)
+    assert pins(points, colors, spot)

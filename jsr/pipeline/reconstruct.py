@@ -19,6 +19,7 @@ import dataclasses
 import itertools
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -63,12 +64,13 @@ from jsr.pipeline.objects import (
     unsupported_segments,
     UNSUPPORTED_STATIC_SHARE,
 )
-from jsr.pipeline.registration import RegistrationResult, register, surface_pose_result
+from jsr.pipeline.registration import RegistrationResult, point3d_thresholds, register, surface_pose_result
 from jsr.pipeline.surfaces import (
     Alignment,
     SurfaceModel,
     SurfaceSample,
     align_surfaces,
+    anchors_pin,
     build_model,
     fitness,
     geometric_constraint,
@@ -78,6 +80,7 @@ from jsr.pipeline.surfaces import (
     sample_surface,
     seen_through_share,
     texture_agreement,
+    texture_pin,
 )
 from jsr.pipeline.vlad import SegmentIndex, VladVocabulary
 
@@ -92,6 +95,8 @@ SURFACE_STRIDE = 2  # object surface samples (shape-based re-identification) use
 SHAPE_RIVAL_FITNESS_GAP = 0.1  # a surface fit this close in fitness to the chosen one, whose texture passes too, makes the surface ambiguous
 SHAPE_MODE_METRES, SHAPE_MODE_DEGREES = 0.1, 15.0  # fits closer than this (at the region) are one fit, not rivals
 SHAPE_CONFIRM_METRES, SHAPE_CONFIRM_DEGREES = 0.2, 30.0  # landmarks confirm a surface fit within this of it
+# landmark matches pin a surface fit when the motions its shape leaves free move them at least half as far as the region
+ANCHOR_MIN_MOTION_SHARE = 0.5
 SHAPE_SEEN_THROUGH_VOXELS, SHAPE_SEEN_THROUGH_SIGMAS = 3.0, 3.0  # a model point is seen through beyond max(3 voxels, 3 sigma_Z)
 SELF_TEXTURE_MIN_OVERLAP = 0.5  # own views compared only where this share of one lies on the others
 SELF_TEXTURE_VIEWS = 6  # an object's latest keyframe samples that measure how its own views agree
@@ -1234,7 +1239,9 @@ class Reconstructor:
                                                  item[3].transformation, view)), None)
         if best is None and not away:
             shape_alone = [(object_map, alone) for object_map, model, alignments in fits
-                           if (alone := self._shape_alone(object_map, region, model, alignments, view)) is not None]
+                           if (alone := self._shape_alone(
+                               object_map, region, model, alignments, view,
+                               self._landmark_anchors(measurements, object_map, group_points))) is not None]
         if len(shape_alone) == 1:  # two lost objects fitting as well: neither is trusted
             object_map, alignment = shape_alone[0]
             T_o_c = alignment.T_model_region
@@ -1260,6 +1267,25 @@ class Reconstructor:
                     result.num_matches)
         self._claim_region(measurements, group, outcomes[object_map.object_id], matched, result, assignment)
         return True
+
+    def _landmark_anchors(self, measurements: FrameMeasurements, object_map: ObjectMap, group_points: np.ndarray
+                          ) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+        """For :meth:`_shape_alone`: a function of a surface fit ``T_o_c`` (object <- camera)
+        giving the region's keypoints ``(K, 3)`` (camera frame) and the landmarks ``(K, 3)``
+        (object frame) that prediction-based matching (``objects.shape_radius_px``) under it
+        pairs within the 3D inlier threshold of that fit."""
+        landmarks = np.flatnonzero(object_map.points.active)
+
+        def anchors(T_o_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            matched = match_frame_guided(measurements, object_map, landmarks, T_o_c, self.intrinsics, self.config,
+                                         self._focal_length, point_measurements=group_points,
+                                         radius_px=self.config.objects.shape_radius_px)
+            corr = matched.correspondences
+            residuals = np.linalg.norm(transform_points(T_o_c, corr.frame_points) - corr.map_points, axis=1)
+            agree = residuals <= point3d_thresholds(corr, self.config.noise)
+            return corr.frame_points[agree], corr.map_points[agree]
+
+        return anchors
 
     @staticmethod
     def _landmarks_agree_elsewhere(away: list[tuple], region_centre: np.ndarray) -> tuple | None:
@@ -1305,7 +1331,9 @@ class Reconstructor:
         return texture >= config.shape_min_texture_ratio
 
     def _shape_alone(self, object_map: ObjectMap, region: SurfaceModel, model: SurfaceModel,
-                     alignments: list[Alignment], view: DepthView) -> Alignment | None:
+                     alignments: list[Alignment], view: DepthView,
+                     landmark_anchors: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
+                     ) -> Alignment | None:
         """The alignment that the region's surface alone makes certain, or None. It must
         - lie on the model: at least ``objects.shape_min_fitness`` of the region on its surface
           (the rest may show sides the map never saw: the jump turned the object);
@@ -1325,13 +1353,24 @@ class Reconstructor:
           0.57-0.94 of the own views' agreement, wrong ones that the view allows at most 0.32);
         - be pinned by shape (:func:`~jsr.pipeline.surfaces.geometric_constraint` at least
           ``objects.shape_min_constraint``): along a free motion (a box seen on one face or
-          two, a cylinder turned about its axis) the texture does not pin the fit either
-          (measured: synth_two seed 5, a fit 14 degrees off along it, texture agreement 0.87
-          of the own views');
+          two, a cylinder turned about its axis) that the texture lines up well does not pin
+          the fit (synth_two seed 5: a fit 14 degrees off along it, texture agreement 0.87 of
+          the own views'), so the fit must be pinned otherwise:
+          - by landmarks: ``landmark_anchors(T_o_c)`` gives the region's 3D keypoints (camera
+            frame) and the landmarks (object frame) they match under a fit, within the inlier
+            threshold; at least ``detection.min_segment_features`` of them, placed so that the
+            free motions move them (:meth:`_anchors_pin`), pin the fit, refined on surface and
+            landmarks together, if the matches under the refined fit still pin it and its
+            texture still passes (synth_jump seeds 2 and 4: a box jumped and showed two faces,
+            5 of 6 and 5 of 9 guided matches within 1.1 cm of the right fit, too few to
+            register on their own);
+          - or else by the texture's peak along the free motions
+            (:func:`~jsr.pipeline.surfaces.texture_pin`, which moves the fit to the peak);
         - have no rival: no other fit that the view allows, as complete (fitness within 0.1)
           and elsewhere, whose texture passes the same test.
         The fit chosen is the one whose texture lines up best; one pinned by shape is returned
-        refined by geometry alone (:func:`~jsr.pipeline.surfaces.refine_fit`).
+        refined by geometry alone (:func:`~jsr.pipeline.surfaces.refine_fit`), one pinned by
+        landmarks refined on both, one pinned by texture at its texture's peak.
         """
         config = self.config.objects
         if not alignments or config.shape_min_texture_ratio <= 0:  # 0: only fits that landmarks confirm
@@ -1372,13 +1411,41 @@ class Reconstructor:
         logger.debug("object %d: surface fit %.2f, texture agreement %.2f of its own views', %.3f seen through, "
                      "constraint %.3f", object_map.object_id, chosen.fitness, texture[chosen_index],
                      seen_through[chosen_index], constraint)
-        if constraint < config.shape_min_constraint:
+        if constraint >= config.shape_min_constraint:
+            # Pinned by shape: point-to-plane ICP polishes the coloured ICP's fit, whose colour
+            # term the turned object's shading pulls off (kitchen_box120, synth_jump: 2-6 degrees
+            # before, 1-3.5 after)
+            refined = refine_fit(region, model, tree, chosen.T_model_region, config.shape_voxel)
+            return dataclasses.replace(chosen, T_model_region=refined)
+        no_anchors = (np.zeros((0, 3)), np.zeros((0, 3)))
+        anchors = no_anchors if landmark_anchors is None else landmark_anchors(chosen.T_model_region)
+        if not self._anchors_pin(region, model, tree, chosen.T_model_region, anchors[0]):
+            pinned = texture_pin(region, model, tree, chosen.T_model_region, config.shape_voxel,
+                                 config.shape_min_constraint, config.shape_min_fitness)
+            logger.debug("object %d: surface fit not pinned by shape, %d landmark matches agree with it, %s by "
+                         "texture", object_map.object_id, len(anchors[0]), "pinned" if pinned is not None else "not")
+            return None if pinned is None else dataclasses.replace(chosen, T_model_region=pinned)
+        refined = refine_fit(region, model, tree, chosen.T_model_region, config.shape_voxel, anchors=anchors)
+        still = landmark_anchors(refined)
+        texture_refined = texture_agreement(region, model, tree, refined, config.shape_voxel) / own_texture
+        logger.debug("object %d: surface fit pinned by %d landmark matches, after refinement %d agree, texture "
+                     "agreement %.2f", object_map.object_id, len(anchors[0]), len(still[0]), texture_refined)
+        if texture_refined < config.shape_min_texture_ratio or not self._anchors_pin(region, model, tree, refined,
+                                                                                      still[0]):
             return None
-        # Pinned by shape: point-to-plane ICP polishes the coloured ICP's fit, whose colour term
-        # the turned object's shading pulls off (kitchen_box120, synth_jump: 2-6 degrees before,
-        # 1-3.5 after)
-        refined = refine_fit(region, model, tree, chosen.T_model_region, config.shape_voxel)
         return dataclasses.replace(chosen, T_model_region=refined)
+
+    def _anchors_pin(self, region: SurfaceModel, model: SurfaceModel, tree: cKDTree, T_o_c: np.ndarray,
+                     points: np.ndarray) -> bool:
+        """Whether landmark matches at ``points`` ``(K, 3)`` (camera frame) pin the surface fit
+        ``T_o_c``: at least ``detection.min_segment_features`` of them (fewer may agree by
+        chance), and placed so that every motion the shape leaves free moves them
+        (:func:`~jsr.pipeline.surfaces.anchors_pin`, ANCHOR_MIN_MOTION_SHARE)."""
+        if len(points) < max(3, self.config.detection.min_segment_features):
+            return False
+        config = self.config.objects
+        return anchors_pin(region, model, tree, T_o_c, config.shape_voxel, config.shape_min_constraint, points,
+                           ANCHOR_MIN_MOTION_SHARE)
 
     def _surface_self_texture(self, object_map: ObjectMap) -> float | None:
         """Median texture agreement (:func:`~jsr.pipeline.surfaces.texture_agreement`) of

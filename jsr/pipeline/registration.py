@@ -64,7 +64,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from jsr.config import NoiseConfig, RansacConfig
-from jsr.geometry import inlier_threshold
+from jsr.geometry import cross_matrices, inlier_threshold
 from jsr.pipeline import solvers
 from jsr.pipeline.bundle import huber_cost
 
@@ -521,19 +521,10 @@ def _required_samples(inlier_ratio: float, confidence: float) -> float:
 # --------------------------------------------------------------------------------------
 
 
-def _skew(vectors: np.ndarray) -> np.ndarray:
-    out = np.zeros(vectors.shape[:-1] + (3, 3))
-    x, y, z = vectors[..., 0], vectors[..., 1], vectors[..., 2]
-    out[..., 0, 1], out[..., 0, 2] = -z, y
-    out[..., 1, 0], out[..., 1, 2] = z, -x
-    out[..., 2, 0], out[..., 2, 1] = -y, x
-    return out
-
-
 def _exp_and_left_jacobian(omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """SO(3) exponential of a rotation vector and its left Jacobian."""
     angle = float(np.linalg.norm(omega))
-    w = _skew(omega)
+    w = cross_matrices(omega)
     w2 = w @ w
     if angle < 1e-6:
         a, b, c = 1.0 - angle**2 / 6.0, 0.5 - angle**2 / 24.0, 1.0 / 6.0 - angle**2 / 120.0
@@ -588,18 +579,18 @@ def _refine_pose(
         blocks = []
         if len(p):
             j = np.zeros((len(p), 3, 6))
-            j[:, :, :3] = -_skew(p @ rotation.T) @ left
+            j[:, :, :3] = -cross_matrices(p @ rotation.T) @ left
             j[:, :, 3:] = np.eye(3)
             blocks.append((j / s3[:, None, None]).reshape(-1, 6))
         if len(x2):
             j = np.zeros((len(x2), 3, 6))
-            j[:, :, :3] = rotation.T @ _skew(x2 - translation) @ left
+            j[:, :, :3] = rotation.T @ cross_matrices(x2 - translation) @ left
             j[:, :, 3:] = -rotation.T
             j = np.matmul(projector, j) / s2[:, None, None]
             blocks.append(j.reshape(-1, 6))
         if len(pc):
             normals = pc[:, :3] @ rotation.T
-            d_normals = -_skew(normals) @ left  # (C, 3, 3)
+            d_normals = -cross_matrices(normals) @ left  # (C, 3, 3)
             j = np.zeros((len(pc), 4, 6))
             j[:, :3, :3] = d_normals / sa
             j[:, 3, :3] = -np.einsum("i,cij->cj", translation, d_normals) / sd
@@ -699,7 +690,7 @@ def _image_space_terms(
             landmarks = relative @ rotation  # in the camera frame: R^T (X - t)
             z = np.maximum(landmarks[:, 2], 1e-6)
             # d landmark / d w = R^T [X - t]_x, d landmark / d t = -R^T
-            d_landmark = np.concatenate([np.einsum("ji,njk->nik", rotation, _skew(relative)),
+            d_landmark = np.concatenate([np.einsum("ji,njk->nik", rotation, cross_matrices(relative)),
                                          np.broadcast_to(-rotation.T, (len(z), 3, 3))], axis=2)
             projected = landmarks[:, :2] / z[:, None]
             d_projected = (d_landmark[:, :2] - projected[:, :, None] * d_landmark[:, 2:3]) / z[:, None, None]
@@ -711,7 +702,7 @@ def _image_space_terms(
         normals = pc[:, :3] @ rotation.T
         parts.append(((normals - pm[:, :3]) / sa).ravel())
         d_normals = np.zeros((len(pc), 3, 6))
-        d_normals[:, :, :3] = -_skew(normals)  # d (Exp(w) n) / d w = -[n]_x
+        d_normals[:, :, :3] = -cross_matrices(normals)  # d (Exp(w) n) / d w = -[n]_x
         jacobians.append(d_normals.reshape(-1, 6) / sa)
         parts.append((pc[:, 3] - normals @ translation - pm[:, 3]) / sd)
         d_offsets = np.concatenate([np.cross(translation, normals), -normals], axis=1)
@@ -736,7 +727,7 @@ def _left_jacobian_inverse(rotvec: np.ndarray) -> np.ndarray:
     """``(3, 3)`` inverse left Jacobian of SO(3) at ``rotvec``: ``log(Exp(a) Exp(phi)) = phi +
     J^-1 a`` for small ``a``."""
     angle = float(np.linalg.norm(rotvec))
-    cross = _skew(rotvec)
+    cross = cross_matrices(rotvec)
     if angle < 1e-6:
         return np.eye(3) - 0.5 * cross + cross @ cross / 12.0
     factor = 1.0 / angle**2 - (1.0 + math.cos(angle)) / (2.0 * angle * math.sin(angle))
@@ -860,10 +851,17 @@ def surface_pose_result(transform: np.ndarray, corr: Correspondences, ransac_cfg
                         noise_cfg: NoiseConfig, min_links: int) -> RegistrationResult:
     """A successful result at a pose that a surface alignment alone decided (shape-based
     re-identification): ``transform`` is ``T_map_cam``. The ``corr`` matches that agree with
-    it (:func:`evaluate_pose`) stay inliers, linking the view to old landmarks, only when at
-    least ``min_links`` of them agree: fewer may agree by chance. ``reason`` says where the
-    pose came from."""
-    evaluated = evaluate_pose(transform, corr, ransac_cfg, noise_cfg)
+    it (the inlier tests of :func:`evaluate_pose`, here also below ``ransac.min_matches``)
+    stay inliers, linking the view to old landmarks, only when at least ``min_links`` of them
+    agree: fewer may agree by chance. ``reason`` says where the pose came from."""
+    started = time.perf_counter()
+    transform = np.asarray(transform, dtype=float)
+    if corr.num_matches:
+        problem = _Problem(corr, ransac_cfg, noise_cfg)
+        _, _, masks = problem.score_one(transform)
+        evaluated = _result(problem, corr, ransac_cfg, transform, masks, 0, "", started)
+    else:
+        evaluated = _result(None, corr, ransac_cfg, transform, None, 0, "no matches", started)
     masks = [evaluated.inliers_point3d, evaluated.inliers_point2d, evaluated.inliers_plane]
     if evaluated.num_inliers < min_links:
         masks = [np.zeros_like(mask, dtype=bool) for mask in masks]

@@ -29,7 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from jsr.geometry import backproject_pixels, make_transform, rotation_about_axis, rotation_angle, transform_points
+from jsr.geometry import (backproject_pixels, cross_matrices, make_transform, rotation_about_axis, rotation_angle,
+                          transform_points)
 
 
 @dataclass
@@ -156,8 +157,11 @@ def _kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def _icp(region: SurfaceModel, model: SurfaceModel, tree: cKDTree, T: np.ndarray, voxel: float,
-         iterations: int = 15) -> np.ndarray:
-    """Point-to-plane ICP of ``region`` onto ``model`` from ``T`` (model <- region)."""
+         iterations: int = 15, anchors: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Point-to-plane ICP of ``region`` onto ``model`` from ``T`` (model <- region).
+    ``anchors`` ``(K, 3)`` region-frame points and ``(K, 3)`` the model points they must land
+    on (landmark matches) add point-to-point rows, which hold the motions that slide the
+    surface along itself."""
     for iteration in range(iterations):
         moved = transform_points(T, region.points)
         radius = (4.0 if iteration < 5 else 2.0) * voxel
@@ -169,6 +173,12 @@ def _icp(region: SurfaceModel, model: SurfaceModel, tree: cKDTree, T: np.ndarray
         # linearised: (p + w x p + t - q) . n = 0 for the small rotation w and translation t
         a = np.hstack([np.cross(p, n), n])
         b = -np.einsum("ij,ij->i", p - q, n)
+        if anchors is not None and len(anchors[0]):
+            # (p + w x p + t - q) = 0, three rows per anchor: w x p = -[p]x w
+            anchored, targets = transform_points(T, anchors[0]), anchors[1]
+            rows = np.concatenate([-cross_matrices(anchored), np.tile(np.eye(3), (len(anchored), 1, 1))], axis=2)
+            rows = rows.reshape(-1, 6)  # (3K, 6)
+            a, b = np.vstack([a, rows]), np.concatenate([b, (targets - anchored).ravel()])
         step, *_ = np.linalg.lstsq(a, b, rcond=None)
         angle = np.linalg.norm(step[:3])
         rotation = np.eye(3) if angle < 1e-12 else rotation_about_axis(step[:3] / angle, angle)
@@ -179,11 +189,13 @@ def _icp(region: SurfaceModel, model: SurfaceModel, tree: cKDTree, T: np.ndarray
 
 
 def refine_fit(region: SurfaceModel, model: SurfaceModel, model_tree: cKDTree, T: np.ndarray,
-               voxel: float) -> np.ndarray:
+               voxel: float, anchors: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """``T`` (model <- region) refined by point-to-plane ICP: geometry alone, for a fit whose
     shape pins it (:func:`geometric_constraint`); coloured ICP's fits are pulled off by the
-    shading of an object that turned."""
-    return _icp(region, model, model_tree, T, voxel)
+    shading of an object that turned. With ``anchors`` (region points ``(K, 3)``, model
+    points ``(K, 3)``: landmark matches) the fit is refined on both, for a fit that only the
+    anchors pin."""
+    return _icp(region, model, model_tree, T, voxel, anchors=anchors)
 
 
 ICP_WORKERS = 2  # ICP runs from independent starts run on this many threads (results kept in order)
@@ -318,6 +330,11 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
             if any(same_placement(coarse, other, centre, 0.05, 20.0) for other in refine):
                 continue  # many starts converge to one fit (within 5 cm and 20 degrees): refine it once
             refine.append(coarse)
+        # a fit that turns freely (a cylinder) is also tried where its texture lines up best
+        for coarse in list(refine):
+            swept = texture_sweep(region, model, tree, coarse, voxel, min_fitness)
+            if swept is not None and not any(same_placement(swept, other, centre, 0.05, 20.0) for other in refine):
+                refine.append(swept)
         refined_fits = list(pool.map(lambda coarse: _colored_icp(region, model, coarse, voxel), refine))
     candidates = [(score, refined) for refined in refined_fits
                   if (score := fitness(region, tree, refined, voxel)) >= min_fitness]
@@ -367,26 +384,178 @@ def texture_agreement(region: SurfaceModel, model: SurfaceModel, model_tree: cKD
     return float(np.sum(ours * theirs) / np.sqrt(ours_power * theirs_power))
 
 
-def geometric_constraint(region: SurfaceModel, model: SurfaceModel, model_tree: cKDTree, T: np.ndarray,
-                         voxel: float) -> float:
-    """How well the region's shape alone pins the alignment ``T`` (model <- region): the
-    smallest eigenvalue, per point, of the point-to-plane information matrix of the region
-    points on the model (rows ``[(p - c) x n / L, n]`` for aligned points ``p``, model
-    normals ``n``, centroid ``c``, RMS radius ``L``; the stability measure of Gelfand et al.
-    2003). Near 0 when some rigid motion slides the surface along itself: a cylinder's side
-    turned about its axis, a plane, two faces of a box along their edge. A box seen on three
-    faces gives 0.03-0.08. 0.0 when fewer than 10 region points lie on the model.
-    """
+def _information(region: SurfaceModel, model: SurfaceModel, model_tree: cKDTree, T: np.ndarray,
+                 voxel: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """The point-to-plane information matrix ``(6, 6)`` per point of the region points on the
+    model under ``T`` (model <- region), rows ``[(p - c) x n / L, n]`` for aligned points
+    ``p``, model normals ``n``; with the centroid ``c`` ``(3,)`` (model frame) and the RMS
+    radius ``L`` about it. None when fewer than 10 region points lie on the model."""
     aligned = transform_points(T, region.points)
     distance, nearest = model_tree.query(aligned, distance_upper_bound=1.5 * voxel)
     on = np.isfinite(distance)
     if on.sum() < 10:
-        return 0.0
+        return None
     p, n = aligned[on], model.normals[nearest[on]]
     centre = p.mean(axis=0)
-    radius = float(np.sqrt(np.mean(np.sum((p - centre) ** 2, axis=1))))
-    jacobian = np.hstack([np.cross(p - centre, n) / max(radius, 1e-9), n])
-    return float(np.linalg.eigvalsh(jacobian.T @ jacobian)[0] / len(p))
+    radius = max(float(np.sqrt(np.mean(np.sum((p - centre) ** 2, axis=1)))), 1e-9)
+    jacobian = np.hstack([np.cross(p - centre, n) / radius, n])
+    return jacobian.T @ jacobian / len(p), centre, radius
+
+
+def geometric_constraint(region: SurfaceModel, model: SurfaceModel, model_tree: cKDTree, T: np.ndarray,
+                         voxel: float) -> float:
+    """How well the region's shape alone pins the alignment ``T`` (model <- region): the
+    smallest eigenvalue of the point-to-plane information matrix per point of the region
+    points on the model (:func:`_information`; the stability measure of Gelfand et al.
+    2003). Near 0 when some rigid motion slides the surface along itself: a cylinder's side
+    turned about its axis, a plane, two faces of a box along their edge. A box seen on three
+    faces gives 0.03-0.08. 0.0 when fewer than 10 region points lie on the model.
+    """
+    information = _information(region, model, model_tree, T, voxel)
+    return 0.0 if information is None else float(np.linalg.eigvalsh(information[0])[0])
+
+
+FREE_TURN_CONSTRAINT = 0.005  # a turn is free when the information along it is below this (a cylinder's side ~0.001)
+FREE_TURN_ROTATION_SHARE = 0.5  # ... and it is a turn: this much of its twist (rotation scaled by the RMS radius L)
+# is rotation; a turn about an axis d from the region's centroid has L / sqrt(L^2 + d^2): an arc of a cylinder 0.8-0.95
+FREE_TURN_STEP_DEGREES = 15.0  # the free turn is swept in steps of this
+
+
+def free_turn(region: SurfaceModel, model: SurfaceModel, model_tree: cKDTree, T: np.ndarray,
+              voxel: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """The line ``(axis (3,), point (3,))`` (model frame) about which the region aligned by
+    ``T`` (model <- region) turns freely along the model (a cylinder's side about its axis),
+    or None: of the motions of :func:`_information` below FREE_TURN_CONSTRAINT (a cylinder's
+    side has two: the turn and a slide along the axis), the one most a rotation, if mostly
+    one (FREE_TURN_ROTATION_SHARE; a slide is none)."""
+    information = _information(region, model, model_tree, T, voxel)
+    if information is None:
+        return None
+    matrix, centre, radius = information
+    values, vectors = np.linalg.eigh(matrix)
+    free = vectors[:, values < FREE_TURN_CONSTRAINT]  # (6, k) twists (scaled rotation, translation)
+    if free.shape[1] == 0:
+        return None
+    # the unit twist in their span with the largest rotation part
+    share, mix = np.linalg.eigh(free[:3].T @ free[:3])
+    twist = free @ mix[:, -1]
+    if np.sqrt(max(share[-1], 0.0)) < FREE_TURN_ROTATION_SHARE:
+        return None
+    omega, velocity = twist[:3] / radius, twist[3:]  # velocity of a point x - c: omega x (x - c) + velocity
+    # a turn about the line through a: omega x (x - a), so velocity = -omega x (a - c)
+    point = centre + np.cross(omega, velocity) / float(omega @ omega)
+    return omega / np.linalg.norm(omega), point
+
+
+def texture_sweep(region: SurfaceModel, model: SurfaceModel, model_tree: cKDTree, T: np.ndarray,
+                  voxel: float, min_fitness: float) -> np.ndarray | None:
+    """Along the free turn of the fit ``T`` (:func:`free_turn`), in steps of
+    FREE_TURN_STEP_DEGREES, the turned fit whose texture lines up best
+    (:func:`texture_agreement`), if better than ``T``'s and with ``min_fitness`` of the
+    region on the model; None otherwise. The shape cannot tell where a cylinder turned to;
+    its texture can, from far, where coloured ICP only slides a few degrees."""
+    line = free_turn(region, model, model_tree, T, voxel)
+    if line is None:
+        return None
+    axis, point = line
+    best, best_texture = None, texture_agreement(region, model, model_tree, T, voxel)
+    for angle in np.radians(np.arange(FREE_TURN_STEP_DEGREES, 360.0, FREE_TURN_STEP_DEGREES)):
+        turned = _turn_about(axis, point, angle) @ T
+        if fitness(region, model_tree, turned, voxel) < min_fitness:
+            continue
+        texture = texture_agreement(region, model, model_tree, turned, voxel)
+        if texture > best_texture:
+            best, best_texture = turned, texture
+    return best
+
+
+TEXTURE_PIN_METRES = 0.03  # a free motion is pinned by texture when moving the region this far (RMS) along it ...
+TEXTURE_PIN_RATIO = 0.8  # ... either way drops the texture agreement to at most this share of its peak
+TEXTURE_SEARCH_STEP_METRES = 0.002  # the peak is searched for in steps of this (RMS motion of the region)
+
+
+def _free_motions(region: SurfaceModel, model: SurfaceModel, model_tree: cKDTree, T: np.ndarray, voxel: float,
+                  free_below: float) -> list[np.ndarray] | None:
+    """The rigid motions that slide the region aligned by ``T`` (model <- region) along the
+    model: ``(4, 4)`` twist matrices (model frame, about the origin) of the information
+    eigenvalues below ``free_below`` (:func:`_information`), each scaled to move the region's
+    points by 1 m RMS. None when fewer than 10 region points lie on the model."""
+    information = _information(region, model, model_tree, T, voxel)
+    if information is None:
+        return None
+    matrix, centre, radius = information
+    values, vectors = np.linalg.eigh(matrix)
+    offsets = transform_points(T, region.points) - centre
+    motions = []
+    for twist in vectors[:, values < free_below].T:
+        omega, velocity = twist[:3] / radius, twist[3:]  # point velocity omega x (x - c) + velocity
+        speed = np.sqrt(np.mean(np.sum((np.cross(omega, offsets) + velocity) ** 2, axis=1)))
+        generator = np.zeros((4, 4))
+        generator[:3, :3] = cross_matrices(omega / speed)
+        generator[:3, 3] = (velocity - np.cross(omega, centre)) / speed  # about the model origin
+        motions.append(generator)
+    return motions
+
+
+def anchors_pin(region: SurfaceModel, model: SurfaceModel, model_tree: cKDTree, T: np.ndarray, voxel: float,
+                free_below: float, anchor_points: np.ndarray, min_share: float) -> bool:
+    """Whether ``anchor_points`` ``(K, 3)`` (region frame: landmark matches) pin the motions
+    that the shape leaves free under ``T`` (:func:`_free_motions`): every such motion (and
+    every mix of them) that moves the region by 1 cm RMS moves the anchors by at least
+    ``min_share`` cm RMS. Anchors on a line parallel to a cylinder's axis pin its turn and
+    its slide; anchors where the region turns about (its axis, far off them) do not."""
+    motions = _free_motions(region, model, model_tree, T, voxel, free_below)
+    if motions is None or not len(anchor_points):
+        return False
+    if not motions:
+        return True
+    anchored = np.hstack([transform_points(T, anchor_points), np.ones((len(anchor_points), 1))])
+    # (3K, m): displacement of every anchor per unit of each free motion, RMS over the anchors
+    displacement = np.stack([(anchored @ generator.T)[:, :3].ravel() for generator in motions], axis=1)
+    displacement /= np.sqrt(len(anchor_points))
+    return bool(np.linalg.svd(displacement, compute_uv=False)[-1] >= min_share)
+
+
+def texture_pin(region: SurfaceModel, model: SurfaceModel, model_tree: cKDTree, T: np.ndarray, voxel: float,
+                free_below: float, min_fitness: float) -> np.ndarray | None:
+    """The fit ``T`` (model <- region) moved along the motions its shape leaves free
+    (:func:`_free_motions`, information below ``free_below``) to where the texture lines up
+    best (:func:`texture_agreement`; coordinate ascent, steps of TEXTURE_SEARCH_STEP_METRES
+    within TEXTURE_PIN_METRES), if the texture pins it there: moving TEXTURE_PIN_METRES along
+    any free motion, either way, drops the agreement to TEXTURE_PIN_RATIO of its peak or takes
+    the region off the model (below ``min_fitness``). None otherwise (a flat texture along the
+    motion, or none). Measured on synth_two seed 5, a cylinder turned about its axis: the
+    agreement 0.85 at the right turn, 0.68-0.73 at 8 degrees (1 cm), 0.51-0.57 at 12."""
+    from scipy.linalg import expm
+
+    motions = _free_motions(region, model, model_tree, T, voxel, free_below)
+    if motions is None:
+        return None
+
+    def moved(generator: np.ndarray, metres: float) -> np.ndarray:
+        return expm(metres * generator) @ T
+
+    def score(candidate: np.ndarray) -> float:
+        if fitness(region, model_tree, candidate, voxel) < min_fitness:
+            return -np.inf
+        return texture_agreement(region, model, model_tree, candidate, voxel)
+
+    steps = np.arange(-TEXTURE_PIN_METRES, TEXTURE_PIN_METRES + 1e-9, TEXTURE_SEARCH_STEP_METRES)
+    peak = score(T)
+    for _ in range(2):  # coordinate ascent over the free motions (a cylinder: its turn and its slide)
+        for generator in motions:
+            candidates = [moved(generator, metres) for metres in steps]
+            scores = [score(candidate) for candidate in candidates]
+            best = int(np.argmax(scores))
+            if scores[best] > peak:
+                T, peak = candidates[best], scores[best]
+    if not np.isfinite(peak) or peak <= 0:
+        return None
+    for generator in motions:
+        for metres in (-TEXTURE_PIN_METRES, TEXTURE_PIN_METRES):
+            if score(moved(generator, metres)) > TEXTURE_PIN_RATIO * peak:
+                return None
+    return T
 
 
 def seen_through_share(model: SurfaceModel, T_model_camera: np.ndarray, view, intrinsics, noise, margin: float,
@@ -408,10 +577,15 @@ def seen_through_share(model: SurfaceModel, T_model_camera: np.ndarray, view, in
     return float(through.sum() / measured.sum())
 
 
+def _turn_about(axis: np.ndarray, centre: np.ndarray, angle: float) -> np.ndarray:
+    """``(4, 4)`` rotation by ``angle`` (radians) about the line through ``centre`` along ``axis``."""
+    turn = make_transform(rotation_about_axis(axis, angle), np.zeros(3))
+    return make_transform(np.eye(3), centre) @ turn @ make_transform(np.eye(3), -centre)
+
+
 def _half_turn(axis: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """``(4, 4)`` rotation by 180 degrees about the line through ``centre`` along ``axis``."""
-    turn = make_transform(rotation_about_axis(axis, np.pi), np.zeros(3))
-    return make_transform(np.eye(3), centre) @ turn @ make_transform(np.eye(3), -centre)
+    return _turn_about(axis, centre, np.pi)
 
 
 def _symmetry_axes(points: np.ndarray, normals: np.ndarray, faces: int = 2) -> list[tuple[np.ndarray, np.ndarray]]:
