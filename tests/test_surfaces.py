@@ -356,6 +356,18 @@ def test_shape_alone_lets_agreeing_landmark_matches_pin_a_fit_that_the_shape_lea
     assert pinned is not None
     assert same_placement(pinned.T_model_region, camera, centre, 0.003, 0.5)  # refined onto the truth
     assert alone(anchors_from(spread[:4])) is None  # fewer than detection.min_segment_features
+    # a refinement that loses texture agreement (the surface model pulls it off) is not kept:
+    # the fit itself, pinned by the matches, is
+    import jsr.pipeline.reconstruct as reconstruct_module
+
+    refine = reconstruct_module.refine_fit
+    astray = make_transform(np.eye(3), [0.0, 0.0, 0.03]) @ camera
+    try:
+        reconstruct_module.refine_fit = lambda *args, **kwargs: astray
+        kept = alone(anchors_from(spread))
+    finally:
+        reconstruct_module.refine_fit = refine
+    assert kept is not None and np.allclose(kept.T_model_region, turned)
     assert alone(anchors_from(spread, spread[::-1])) is None  # wrong matches: none agree with the fit
 
 

@@ -97,6 +97,7 @@ SHAPE_MODE_METRES, SHAPE_MODE_DEGREES = 0.1, 15.0  # fits closer than this (at t
 SHAPE_CONFIRM_METRES, SHAPE_CONFIRM_DEGREES = 0.2, 30.0  # landmarks confirm a surface fit within this of it
 # landmark matches pin a surface fit when the motions its shape leaves free move them at least half as far as the region
 ANCHOR_MIN_MOTION_SHARE = 0.5
+TEXTURE_LOSS_MARGIN = 0.05  # a refinement that lowers the texture agreement (over the own views') by more is not kept
 SHAPE_SEEN_THROUGH_VOXELS, SHAPE_SEEN_THROUGH_SIGMAS = 3.0, 3.0  # a model point is seen through beyond max(3 voxels, 3 sigma_Z)
 SELF_TEXTURE_MIN_OVERLAP = 0.5  # own views compared only where this share of one lies on the others
 SELF_TEXTURE_VIEWS = 6  # an object's latest keyframe samples that measure how its own views agree
@@ -1179,7 +1180,8 @@ class Reconstructor:
         degrees): the landmarks confirm the shape, which alone fits a box four ways. Landmarks
         that register away from their fits win when two fits far apart lead them to the same
         pose (:meth:`_landmarks_agree_elsewhere`), or when the surface agrees with their pose
-        (:meth:`_surface_agrees`).
+        (:meth:`_surface_agrees`); when such a registration's object alone has a surface fit
+        at the same pose that :meth:`_shape_alone` accepts, that fit's pose is taken instead.
 
         A jump that turns the object far shows it from sides whose landmarks no longer match
         (SIFT does not survive a 50-degree change of view), so when no landmarks confirm any
@@ -1237,11 +1239,23 @@ class Reconstructor:
             best = next((item for item in sorted(away, key=lambda item: -item[3].num_inliers)
                          if self._surface_agrees(item[0], region, models[item[0].object_id],
                                                  item[3].transformation, view)), None)
+        def alone(object_map: ObjectMap, model: SurfaceModel, alignments: list[Alignment]) -> Alignment | None:
+            return self._shape_alone(object_map, region, model, alignments, view,
+                                     self._landmark_anchors(measurements, object_map, group_points))
+
         if best is None and not away:
-            shape_alone = [(object_map, alone) for object_map, model, alignments in fits
-                           if (alone := self._shape_alone(
-                               object_map, region, model, alignments, view,
-                               self._landmark_anchors(measurements, object_map, group_points))) is not None]
+            shape_alone = [(object_map, fit) for object_map, model, alignments in fits
+                           if (fit := alone(object_map, model, alignments)) is not None]
+        elif best is not None and any(best is item for item in away):
+            # A registration away from its fit, of few landmarks: when the object's surface
+            # alone, pinned, finds the same pose, the surface's pose is taken (synth_two_sim
+            # seed 2 frame 56: the registration 8 of 13 inliers, 6.8 degrees off; the surface
+            # fit, pinned by 7 matches, 2.3 degrees)
+            object_map, model, alignments = next(item for item in fits if item[0] is best[0])
+            fit = alone(object_map, model, alignments)
+            if fit is not None and same_placement(fit.T_model_region, best[3].transformation, region_centre,
+                                                  SHAPE_MODE_METRES, SHAPE_MODE_DEGREES):
+                shape_alone = [(object_map, fit)]
         if len(shape_alone) == 1:  # two lost objects fitting as well: neither is trusted
             object_map, alignment = shape_alone[0]
             T_o_c = alignment.T_model_region
@@ -1361,7 +1375,8 @@ class Reconstructor:
             threshold; at least ``detection.min_segment_features`` of them, placed so that the
             free motions move them (:meth:`_anchors_pin`), pin the fit, refined on surface and
             landmarks together, if the matches under the refined fit still pin it and its
-            texture still passes (synth_jump seeds 2 and 4: a box jumped and showed two faces,
+            texture still passes (unrefined if the refinement loses texture agreement,
+            TEXTURE_LOSS_MARGIN) (synth_jump seeds 2 and 4: a box jumped and showed two faces,
             5 of 6 and 5 of 9 guided matches within 1.1 cm of the right fit, too few to
             register on their own);
           - or else by the texture's peak along the free motions
@@ -1430,6 +1445,11 @@ class Reconstructor:
         texture_refined = texture_agreement(region, model, tree, refined, config.shape_voxel) / own_texture
         logger.debug("object %d: surface fit pinned by %d landmark matches, after refinement %d agree, texture "
                      "agreement %.2f", object_map.object_id, len(anchors[0]), len(still[0]), texture_refined)
+        if texture_refined < texture[chosen_index] - TEXTURE_LOSS_MARGIN:
+            # the refinement lost texture agreement: the surface model pulled it off (a
+            # cylinder's; synth_two_sim s2 frame 56: 0.84 -> 0.73, 2.3 -> 7.8 degrees off); the
+            # fit itself, which the matches pin, is kept
+            return chosen
         if texture_refined < config.shape_min_texture_ratio or not self._anchors_pin(region, model, tree, refined,
                                                                                       still[0]):
             return None
