@@ -236,13 +236,15 @@ def test_shape_alone_needs_a_pinned_unrivalled_fit_whose_texture_lines_up_where_
     config = load_config(None)
     owner = SimpleNamespace(config=config, intrinsics=_Intrinsics(), _surface_self_texture=lambda object_map: 1.0)
     owner._anchors_pin = lambda *args: Reconstructor._anchors_pin(owner, *args)
+    owner._seen_through = lambda *args: Reconstructor._seen_through(owner, *args)
     camera, seen, box, region, view = _box_scene()
     turned = make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.pi), np.zeros(3)) @ camera
     shifted = make_transform(np.eye(3), [0.03, 0.0, 0.0]) @ camera
 
     def alone(alignments, region=region, model=box, view=view):
         """The fit _shape_alone returns, as ``right``, ``"other"`` (another placement) or None."""
-        chosen = Reconstructor._shape_alone(owner, SimpleNamespace(object_id=1), region, model, alignments, view)
+        chosen = Reconstructor._shape_alone(owner, SimpleNamespace(object_id=1), region, model, alignments, view,
+                                            owner._surface_self_texture(None))
         if chosen is None:
             return None
         centre = region.points.mean(axis=0)
@@ -304,7 +306,8 @@ def test_shape_alone_needs_a_pinned_unrivalled_fit_whose_texture_lines_up_where_
     cylinder_region = region_model(cylinder_seen, VOXEL)
     off = make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.radians(6.0)), np.zeros(3)) @ camera
     pinned = Reconstructor._shape_alone(owner, SimpleNamespace(object_id=1), cylinder_region, cylinder,
-                                        [Alignment(off, 0.98, 0.07)], _depth_view(cylinder_seen.points.astype(float)))
+                                        [Alignment(off, 0.98, 0.07)], _depth_view(cylinder_seen.points.astype(float)),
+                                        owner._surface_self_texture(None))
     assert pinned is not None
     assert same_placement(pinned.T_model_region, camera, cylinder_region.points.mean(axis=0), 0.005, 1.5)
     owner.config = load_config(None, ["objects.shape_min_texture_ratio=0"])
@@ -325,6 +328,7 @@ def test_shape_alone_lets_agreeing_landmark_matches_pin_a_fit_that_the_shape_lea
     config = load_config(None)
     owner = SimpleNamespace(config=config, intrinsics=_Intrinsics(), _surface_self_texture=lambda object_map: 1.0)
     owner._anchors_pin = lambda *args: Reconstructor._anchors_pin(owner, *args)
+    owner._seen_through = lambda *args: Reconstructor._seen_through(owner, *args)
     camera = _box_camera()
     cylinder_points, _ = _cylinder_side()
     seen = _view(cylinder_points, _rings(cylinder_points), camera)
@@ -349,7 +353,8 @@ def test_shape_alone_lets_agreeing_landmark_matches_pin_a_fit_that_the_shape_lea
         return anchors
 
     def alone(anchors):
-        return Reconstructor._shape_alone(owner, SimpleNamespace(object_id=1), region, cylinder, [fit], view, anchors)
+        return Reconstructor._shape_alone(owner, SimpleNamespace(object_id=1), region, cylinder, [fit], view,
+                                          owner._surface_self_texture(None), anchors)
 
     assert alone(None) is None  # the shape alone leaves the turn free
     pinned = alone(anchors_from(spread))
@@ -400,10 +405,12 @@ def test_surface_agrees_with_a_landmark_pose_where_it_lies_on_the_model_the_view
 
     owner = SimpleNamespace(config=load_config(None), intrinsics=_Intrinsics(),
                             _surface_self_texture=lambda object_map: 1.0)
+    owner._seen_through = lambda *args: Reconstructor._seen_through(owner, *args)
     camera, seen, box, region, view = _box_scene()
 
     def agrees(T, region=region):
-        return Reconstructor._surface_agrees(owner, SimpleNamespace(object_id=1), region, box, T, view)
+        return Reconstructor._surface_agrees(owner, SimpleNamespace(object_id=1), region, box, T, view,
+                                             owner._surface_self_texture(None))
 
     assert agrees(camera)
     assert not agrees(camera @ np.linalg.inv(make_transform(np.eye(3), [0.0, 0.0, -0.15])))  # seen through

@@ -27,7 +27,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from jsr.config import Config
-from jsr.geometry import backproject_pixels, inlier_threshold, invert_transform, rotation_angle, transform_points
+from jsr.geometry import backproject_pixels, invert_transform, rotation_angle, transform_points
 from jsr.io.camera import CameraIntrinsics
 from jsr.io.dataset import Frame
 from jsr.pipeline.bundle import BundleScheduler
@@ -64,7 +64,8 @@ from jsr.pipeline.objects import (
     unsupported_segments,
     UNSUPPORTED_STATIC_SHARE,
 )
-from jsr.pipeline.registration import RegistrationResult, point3d_thresholds, register, surface_pose_result
+from jsr.pipeline.registration import (RegistrationResult, depth_thresholds, point3d_thresholds, register,
+                                      surface_pose_result)
 from jsr.pipeline.surfaces import (
     Alignment,
     SurfaceModel,
@@ -1141,8 +1142,7 @@ class Reconstructor:
         on_region = np.zeros(len(zo), dtype=bool)
         on_region[inside] = np.isin(labels[vo[inside], uo[inside]], group)
         known = ~on_region & (seen > 0)
-        noise = self.config.noise
-        margin = inlier_threshold(zo, noise.sigma_z_coefficient, noise.inlier_sigmas, noise.min_inlier_threshold)
+        margin = depth_thresholds(zo, self.config.noise)
         there = known & (np.abs(seen - zo) <= margin)
         vacated = known & (seen > zo + margin)
         evidence = int(there.sum() + vacated.sum())
@@ -1229,6 +1229,14 @@ class Reconstructor:
                 if best is None or result.num_inliers > best[3].num_inliers:
                     best = (object_map, T_o_c, matched, result)
         shape_alone = []
+        own_textures: dict[int, float | None] = {}
+
+        def own_texture(object_map: ObjectMap) -> float | None:
+            """:meth:`_surface_self_texture`, computed once per map here (model builds, ~0.3 s)."""
+            if object_map.object_id not in own_textures:
+                own_textures[object_map.object_id] = self._surface_self_texture(object_map)
+            return own_textures[object_map.object_id]
+
         # this frame's depth, camera frame: would a model placed by an alignment be seen through?
         view = DepthView(np.asarray(frame.depth[::SURFACE_STRIDE, ::SURFACE_STRIDE], dtype=np.float32),
                          np.eye(4), SURFACE_STRIDE)
@@ -1238,9 +1246,10 @@ class Reconstructor:
             models = {object_map.object_id: model for object_map, model, _ in fits}
             best = next((item for item in sorted(away, key=lambda item: -item[3].num_inliers)
                          if self._surface_agrees(item[0], region, models[item[0].object_id],
-                                                 item[3].transformation, view)), None)
+                                                 item[3].transformation, view, own_texture(item[0]))), None)
+
         def alone(object_map: ObjectMap, model: SurfaceModel, alignments: list[Alignment]) -> Alignment | None:
-            return self._shape_alone(object_map, region, model, alignments, view,
+            return self._shape_alone(object_map, region, model, alignments, view, own_texture(object_map),
                                      self._landmark_anchors(measurements, object_map, group_points))
 
         if best is None and not away:
@@ -1320,23 +1329,21 @@ class Reconstructor:
         return max(agreeing, key=lambda item: item[3].num_inliers) if agreeing else None
 
     def _surface_agrees(self, object_map: ObjectMap, region: SurfaceModel, model: SurfaceModel,
-                        T_o_c: np.ndarray, view: DepthView) -> bool:
+                        T_o_c: np.ndarray, view: DepthView, own_texture: float | None) -> bool:
         """Whether the object's surface agrees with a pose that its landmarks found (``T_o_c``,
         object <- camera) away from the surface fit that guided their matching: the region
         on the model (``objects.shape_min_fitness``), the model not seen through
         (``objects.shape_max_seen_through``) and its texture lining up as in
         :meth:`_shape_alone`. The landmarks pin the pose; the surface rules out chance
         matches (synth_two_sim seed 2: one registration 0.9 degrees off the truth, under a
-        fit 83 degrees off)."""
+        fit 83 degrees off). ``own_texture``: :meth:`_surface_self_texture` of the object."""
         config = self.config.objects
-        own_texture = self._surface_self_texture(object_map)
         if config.shape_min_texture_ratio <= 0 or own_texture is None or own_texture < SELF_TEXTURE_MIN:
             return False
         tree = cKDTree(model.points)
         if fitness(region, tree, T_o_c, config.shape_voxel) < config.shape_min_fitness:
             return False
-        share = seen_through_share(model, T_o_c, view, self.intrinsics, self.config.noise,
-                                   SHAPE_SEEN_THROUGH_VOXELS * config.shape_voxel, SHAPE_SEEN_THROUGH_SIGMAS)
+        share = self._seen_through(model, T_o_c, view)
         if share is None or share > config.shape_max_seen_through:
             return False
         texture = texture_agreement(region, model, tree, T_o_c, config.shape_voxel) / own_texture
@@ -1345,10 +1352,11 @@ class Reconstructor:
         return texture >= config.shape_min_texture_ratio
 
     def _shape_alone(self, object_map: ObjectMap, region: SurfaceModel, model: SurfaceModel,
-                     alignments: list[Alignment], view: DepthView,
+                     alignments: list[Alignment], view: DepthView, own_texture: float | None,
                      landmark_anchors: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
                      ) -> Alignment | None:
-        """The alignment that the region's surface alone makes certain, or None. It must
+        """The alignment that the region's surface alone makes certain, or None
+        (``own_texture``: :meth:`_surface_self_texture` of the object). It must
         - lie on the model: at least ``objects.shape_min_fitness`` of the region on its surface
           (the rest may show sides the map never saw: the jump turned the object);
         - leave the model where this view (``view``, the frame's depth) saw it or something in
@@ -1390,15 +1398,12 @@ class Reconstructor:
         config = self.config.objects
         if not alignments or config.shape_min_texture_ratio <= 0:  # 0: only fits that landmarks confirm
             return None
-        own_texture = self._surface_self_texture(object_map)
         if own_texture is None or own_texture < SELF_TEXTURE_MIN:
             logger.debug("object %d: its own views' texture agreement %s: the surface alone is not trusted",
                          object_map.object_id, own_texture)
             return None
-        margin = SHAPE_SEEN_THROUGH_VOXELS * config.shape_voxel
         tree = cKDTree(model.points)
-        seen_through = [seen_through_share(model, a.T_model_region, view, self.intrinsics, self.config.noise, margin,
-                                           SHAPE_SEEN_THROUGH_SIGMAS) for a in alignments]
+        seen_through = [self._seen_through(model, a.T_model_region, view) for a in alignments]
         texture = [texture_agreement(region, model, tree, a.T_model_region, config.shape_voxel) / own_texture
                    for a in alignments]
         allowed = [share is None or share <= config.shape_max_seen_through for share in seen_through]
@@ -1441,19 +1446,26 @@ class Reconstructor:
                          "texture", object_map.object_id, len(anchors[0]), "pinned" if pinned is not None else "not")
             return None if pinned is None else dataclasses.replace(chosen, T_model_region=pinned)
         refined = refine_fit(region, model, tree, chosen.T_model_region, config.shape_voxel, anchors=anchors)
-        still = landmark_anchors(refined)
         texture_refined = texture_agreement(region, model, tree, refined, config.shape_voxel) / own_texture
-        logger.debug("object %d: surface fit pinned by %d landmark matches, after refinement %d agree, texture "
-                     "agreement %.2f", object_map.object_id, len(anchors[0]), len(still[0]), texture_refined)
+        logger.debug("object %d: surface fit pinned by %d landmark matches, texture agreement %.2f after "
+                     "refinement", object_map.object_id, len(anchors[0]), texture_refined)
         if texture_refined < texture[chosen_index] - TEXTURE_LOSS_MARGIN:
             # the refinement lost texture agreement: the surface model pulled it off (a
             # cylinder's; synth_two_sim s2 frame 56: 0.84 -> 0.73, 2.3 -> 7.8 degrees off); the
             # fit itself, which the matches pin, is kept
             return chosen
+        still = landmark_anchors(refined)
         if texture_refined < config.shape_min_texture_ratio or not self._anchors_pin(region, model, tree, refined,
                                                                                       still[0]):
             return None
         return dataclasses.replace(chosen, T_model_region=refined)
+
+    def _seen_through(self, model: SurfaceModel, T_o_c: np.ndarray, view: DepthView) -> float | None:
+        """:func:`~jsr.pipeline.surfaces.seen_through_share` of the object's surface model at
+        ``T_o_c`` in this frame's ``view`` (beyond SHAPE_SEEN_THROUGH voxels and sigmas)."""
+        return seen_through_share(model, T_o_c, view, self.intrinsics, self.config.noise,
+                                  SHAPE_SEEN_THROUGH_VOXELS * self.config.objects.shape_voxel,
+                                  SHAPE_SEEN_THROUGH_SIGMAS)
 
     def _anchors_pin(self, region: SurfaceModel, model: SurfaceModel, tree: cKDTree, T_o_c: np.ndarray,
                      points: np.ndarray) -> bool:
@@ -1744,8 +1756,7 @@ class Reconstructor:
         segment[with_depth] = segments.label_image[v[with_depth], u[with_depth]]
         with_depth &= segment >= 0
         z = camera_points[:, 2]
-        noise = self.config.noise
-        threshold = inlier_threshold(z, noise.sigma_z_coefficient, noise.inlier_sigmas, noise.min_inlier_threshold)
+        threshold = depth_thresholds(z, self.config.noise)
         kept = np.isin(landmarks, static_inlier_landmarks(static))
         displaced = with_depth & ~kept & (np.abs(measured - z) > threshold)
         projecting = np.bincount(segment[with_depth], minlength=len(segments))

@@ -225,10 +225,12 @@ class RegistrationResult:
 
 def point3d_thresholds(corr: Correspondences, noise_cfg: NoiseConfig) -> np.ndarray:
     """``(A,)`` inlier thresholds of the 3D-3D pairs from the depth of the frame points."""
-    return _threshold(corr.point_depths, noise_cfg)
+    return depth_thresholds(corr.point_depths, noise_cfg)
 
 
-def _threshold(depth: np.ndarray, noise_cfg: NoiseConfig) -> np.ndarray:
+def depth_thresholds(depth: np.ndarray, noise_cfg: NoiseConfig) -> np.ndarray:
+    """Inlier thresholds (m) of points at ``depth`` (m, any shape): the paper's
+    ``max(noise.min_inlier_threshold, noise.inlier_sigmas * sigma_Z(Z))``."""
     return inlier_threshold(
         np.abs(depth),
         coefficient=noise_cfg.sigma_z_coefficient,
@@ -273,7 +275,7 @@ def point_inliers(transform: np.ndarray, corr: Correspondences, noise_cfg: Noise
 def point2d_inliers(transform: np.ndarray, corr: Correspondences, noise_cfg: NoiseConfig) -> np.ndarray:
     """``(B,)`` bool: landmarks in front of the camera and close to their bearing ray."""
     distance, depth, along = point2d_residuals(transform, corr)
-    return (along > 0) & (depth > 0) & (distance < _threshold(depth, noise_cfg))
+    return (along > 0) & (depth > 0) & (distance < depth_thresholds(depth, noise_cfg))
 
 
 def plane_inliers(transform: np.ndarray, corr: Correspondences, ransac_cfg: RansacConfig) -> np.ndarray:
@@ -410,7 +412,7 @@ class _Problem:
             depth = self.x2 @ rotations[:, :, 2].T - np.einsum("ki,ki->k", rotations[:, :, 2], translations)
             distance = np.sqrt(np.maximum(norm_sq - along * along, 0.0))
             if self.focal_length is None:
-                scaled = (distance / _threshold(depth, self.noise)).T
+                scaled = (distance / depth_thresholds(depth, self.noise)).T
             else:
                 # distance / along is the tangent of the angle to the ray: pixels at focal length f.
                 scaled = (distance / np.maximum(along, 1e-9) * (self.focal_length / self.pixel_threshold)).T
@@ -550,7 +552,7 @@ def _refine_pose(
     r0, t0 = transform[:3, :3], transform[:3, 3]
     # 2D thresholds depend on the landmark depth; fixed at the start pose for a smooth cost.
     depth = ((x2 - t0) @ r0)[:, 2]
-    s2 = _threshold(depth, problem.noise)
+    s2 = depth_thresholds(depth, problem.noise)
     projector = np.eye(3) - bearings[:, :, None] * bearings[:, None, :]
     sa, sd = problem.angle_threshold, problem.distance_threshold
 
