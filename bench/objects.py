@@ -311,8 +311,11 @@ def camera_ate(record: RunRecord, sequence, max_difference: float) -> float | No
 # Scoring
 
 
-def _ratio(numerator: float, denominator: float) -> float | None:
-    return float(numerator) / float(denominator) if denominator > 0 else None
+def _ratio(numerator: float | None, denominator: float | None) -> float | None:
+    """``numerator / denominator``; None when either is missing (None) or the denominator is not positive."""
+    if numerator is None or denominator is None or not denominator > 0:
+        return None
+    return float(numerator) / float(denominator)
 
 
 def landmark_origins(map_, names: dict[int, str], labels_dir: Path, cache: dict) -> tuple[int, int, int]:
@@ -609,13 +612,12 @@ def benchmark_sequence(name: str, seed: int, args, config, work: Path, twins: di
     twin = twins[twin_key]
     result["twin"] = twin
     result["ate_twin"] = twin["ate"]
-    result["ate_ratio"] = _ratio(result["ate"], twin["ate"]) if result["ate"] is not None and twin["ate"] else None
+    result["ate_ratio"] = _ratio(result["ate"], twin["ate"])
     if name in REAL and (path / "labels").is_dir():
         print(f"  {name} with its objects blanked: running {len(sequence)} frames ...", end="", flush=True)
         blanked = run_pipeline(BlankedSequence(sequence, path / "labels"), config, None)
         result["ate_blanked"] = camera_ate(blanked, sequence, config.input.max_time_difference)
-        result["ate_ratio_blanked"] = _ratio(result["ate"], result["ate_blanked"]) \
-            if result["ate"] is not None and result["ate_blanked"] else None
+        result["ate_ratio_blanked"] = _ratio(result["ate"], result["ate_blanked"])
         print(f" {_ratio(len(blanked.reports), blanked.seconds):.2f} fps", flush=True)
     return result
 
