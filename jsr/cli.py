@@ -7,8 +7,10 @@ that anything done here can also be scripted from Python.
 from __future__ import annotations
 
 import functools
+import importlib
 import json
 import logging
+import signal
 import sys
 import time
 from pathlib import Path
@@ -34,7 +36,18 @@ app = typer.Typer(
 console = Console(stderr=True, highlight=False)
 logger = logging.getLogger("jsr")
 
-EXIT_INTERRUPTED = 130
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports Ctrl-C
+EXIT_TERMINATED = 143  # 128 + SIGTERM
+EXIT_INTERNAL_ERROR = 1
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, ``timeout``, a batch scheduler): handled as Ctrl-C is, so that the
+    results of the frames done are written."""
+
+
+def _raise_terminated(_signum, _frame) -> None:
+    raise Terminated("terminated by SIGTERM")
 
 
 def _configure_logging(verbose: int, quiet: bool) -> None:
@@ -62,11 +75,21 @@ def _user_errors(command: Callable) -> Callable:
             return command(*args, **kwargs)
         except JsrError as error:
             _fail(str(error), error.exit_code)
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as interrupt:
             console.print("[yellow]interrupted[/]")
-            raise typer.Exit(EXIT_INTERRUPTED)
+            raise typer.Exit(_interrupt_exit_code(interrupt))
+        except (typer.Exit, typer.Abort):
+            raise
+        except Exception as error:  # a bug: one line; the traceback with -vv
+            logger.debug("traceback of the internal error", exc_info=True)
+            _fail(f"internal error ({type(error).__name__}: {error}); this is a bug in jsr: please report it with "
+                  "the command line (-vv shows the traceback)", EXIT_INTERNAL_ERROR)
 
     return wrapper
+
+
+def _interrupt_exit_code(interrupt: KeyboardInterrupt) -> int:
+    return EXIT_TERMINATED if isinstance(interrupt, Terminated) else EXIT_INTERRUPTED
 
 
 def _version_callback(value: bool) -> None:
@@ -198,16 +221,31 @@ def reconstruct(
                 f"pts {static.point_landmarks if static else 0} | objects {objects} ({tracked} seen){state}",
             )
 
+        stopped: BaseException | None = None
         try:
             summary = run_reconstruction(data, config, out_dir, on_frame=on_frame, save_masks=save_masks,
                                          init_object_mask=init_mask)
-        except KeyboardInterrupt:
+        except BaseException as error:  # reported below, once the progress bar has drawn its last line
+            stopped = error
+    if stopped is not None:
+        if json_summary:  # a batch job still gets its line, with "status" interrupted or failed
+            _print_summary_file(out_dir / "summary.json")
+        if isinstance(stopped, KeyboardInterrupt):
             console.print(f"[yellow]interrupted[/]: results of the frames done are in {out_dir}")
-            raise typer.Exit(EXIT_INTERRUPTED)
+            raise typer.Exit(_interrupt_exit_code(stopped)) from None
+        raise stopped
     if json_summary:
         _print_json(summary)
     if not quiet:
         _print_run_summary(summary, out_dir)
+
+
+def _print_summary_file(path: Path) -> None:
+    """The JSON line of a run that stopped early, from the ``summary.json`` it left."""
+    try:
+        _print_json(json.loads(path.read_text()))
+    except (OSError, ValueError):
+        logger.debug("no readable %s to print", path)
 
 
 def _initial_object_mask(mask_file: Optional[Path], box: Optional[str], shape: tuple[int, int]):
@@ -222,8 +260,10 @@ def _initial_object_mask(mask_file: Optional[Path], box: Optional[str], shape: t
             x0, y0, x1, y1 = (int(v) for v in box.split(","))
         except ValueError:
             raise InputError(f"--init-box must be four integers X0,Y0,X1,Y1, got '{box}'") from None
-        x0, x1 = sorted((max(0, x0), min(width, x1)))
-        y0, y1 = sorted((max(0, y0), min(height, y1)))
+        if x1 <= x0 or y1 <= y0:
+            raise InputError(f"--init-box {box}: give the top-left corner X0,Y0 first, then the bottom-right X1,Y1")
+        x0, x1 = max(0, x0), min(width, x1)
+        y0, y1 = max(0, y0), min(height, y1)
         if x1 - x0 < 2 or y1 - y0 < 2:
             raise InputError(f"--init-box {box} leaves no pixels inside the {width}x{height} image")
         import numpy as np
@@ -289,7 +329,7 @@ def synth(
     json_summary: bool = typer.Option(False, "--json", help="Print a one-line JSON summary on stdout."),
 ) -> None:
     """Write a synthetic RGB-D sequence with exact ground truth (camera, objects, labels)."""
-    from jsr.synth import SynthOptions, generate_sequence
+    from jsr.synth import SynthOptions, check_output_folder, generate_sequence, validate_options
 
     _configure_logging(0, quiet)
     options = SynthOptions(
@@ -304,6 +344,8 @@ def synth(
         seed=seed,
         image_format=image_format,
     )
+    validate_options(options)  # bad options and a full folder are reported before the progress bar starts
+    check_output_folder(out, overwrite)
     started = time.perf_counter()
     with _progress(quiet) as progress:
         task = progress.add_task("synth", total=frames, rate="")
@@ -329,6 +371,7 @@ def frames(
     start: int = typer.Option(0, "--start", help="First frame to use."),
     max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Use at most this many frames."),
     stride: int = typer.Option(1, "--stride", help="Use every STRIDE-th frame."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Write into a folder that already holds files."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Draw what the front-end sees: keypoints (green 3D, red 2D), planes and segments per frame."""
@@ -340,6 +383,9 @@ def frames(
     data = _open_sequence(sequence, config, camera, preset, start, max_frames, stride)
     if out.exists() and not out.is_dir():
         _fail(f"--out {out} is a file; give a folder")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        _fail(f"--out {out} is not empty; pass --overwrite (overlays of the same frames are replaced) "
+              "or choose another folder")
     started = time.perf_counter()
     with _progress(quiet) as progress:
         task = progress.add_task("frames", total=len(data), rate="")
@@ -451,7 +497,9 @@ def export_object_command(
     out: Path = typer.Option(..., "--out", "-o", help="PLY file to write."),
     kind: str = typer.Option("mesh", "--kind", help="mesh, cloud or landmarks."),
     world: bool = typer.Option(False, "--world", help="Place the model in the world frame (first camera)."),
-    timestamp: Optional[float] = typer.Option(None, "--timestamp", help="With --world: pose at this time."),
+    timestamp: Optional[float] = typer.Option(
+        None, "--timestamp", help="With --world: the pose of the tracked frame nearest this time (default: the "
+        "first frame the object was tracked in)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUT if it exists."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing."),
 ) -> None:
@@ -464,9 +512,36 @@ def export_object_command(
         console.print(f"wrote {written['kind']} of object {object_id} ({written['frame']} frame) to {out}")
 
 
-def main() -> None:
-    """Console-script entry point."""
-    app()
+def _usage_error_types() -> tuple[type[Exception], ...]:
+    """Click's UsageError (Typer may bundle its own copy of Click)."""
+    found = []
+    for module in ("typer._click.exceptions", "click.exceptions"):
+        try:
+            found.append(importlib.import_module(module).UsageError)
+        except (ImportError, AttributeError):
+            continue
+    return tuple(found)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console-script entry point. Usage errors (an unknown option, a missing argument, a
+    value of the wrong type) are one line on stderr and exit code 2, as every other bad input;
+    SIGTERM is handled as Ctrl-C (the results of the frames done are written)."""
+    if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, _raise_terminated)
+    usage_errors = _usage_error_types()
+    try:
+        code = app(args=argv, prog_name="jsr", standalone_mode=False)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # done: a late Ctrl-C must not turn the exit into a traceback
+    except usage_errors as error:
+        if type(error).__name__ == "NoArgsIsHelpError":  # bare 'jsr': the help was printed
+            sys.exit(2)
+        command = error.ctx.command_path if getattr(error, "ctx", None) is not None else "jsr"
+        console.print(f"[bold red]error:[/] {error.format_message()} (see '{command} --help')", soft_wrap=True)
+        sys.exit(2)
+    except (KeyboardInterrupt, typer.Abort) as interrupt:  # before a command took over
+        sys.exit(_interrupt_exit_code(interrupt) if isinstance(interrupt, KeyboardInterrupt) else EXIT_INTERRUPTED)
+    sys.exit(code if isinstance(code, int) else 0)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,7 @@ from typing import Any
 import yaml
 
 from jsr.errors import ConfigError
-from jsr.io.text import read_user_text
+from jsr.io.text import describe_yaml_error, read_user_text
 
 
 @dataclass
@@ -432,8 +432,7 @@ def load_config(path: Path | None = None, overrides: list[str] | tuple[str, ...]
         try:
             data = yaml.safe_load(text)
         except yaml.YAMLError as error:
-            first_line = str(error).splitlines()[0]
-            raise ConfigError(f"config file {path} is not valid YAML: {first_line}") from None
+            raise ConfigError(f"config file {path} is not valid YAML: {describe_yaml_error(error)}") from None
         if data is None:
             data = {}
         if not isinstance(data, dict):

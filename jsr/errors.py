@@ -1,7 +1,8 @@
 """Errors a user can fix. Their message is one line: what is wrong and what to do.
 
-The CLI prints the message of any :class:`JsrError` on one line and exits non-zero;
-every other exception is a bug and keeps its traceback.
+The CLI prints the message of any :class:`JsrError` on one line and exits non-zero (2);
+every other exception is a bug: one "internal error" line, exit code 1, and its traceback in
+the debug log (``-vv``).
 """
 
 

@@ -727,14 +727,33 @@ def evaluate_run(
         results_dir, sequence_dir, colour, labels, cameras, max_time_difference, min_visible_pixels
     )
     masks = _masks_section(results_dir, labels, matches)
+    notes = []  # what the figures do not cover, for the reader
+    status = _run_status(results_dir)
+    if status not in (None, "complete"):
+        notes.append(f"the run is {status}: the figures cover only the frames it did")
+    if masks is None and labels and not _png_stems(results_dir / "masks"):
+        notes.append("masks not evaluated: the results hold no masks/ (run 'jsr reconstruct' with --save-masks)")
+    for note in notes:
+        logger.warning("%s: %s", results_dir, note)
     return {
         "results_dir": str(results_dir),
         "sequence_dir": str(sequence_dir),
         "max_time_difference": float(max_time_difference),
+        "run_status": status,
         "camera": camera,
         "objects": objects,
         "masks": masks,
+        "notes": notes,
     }
+
+
+def _run_status(results_dir: Path) -> str | None:
+    """``status`` of ``RESULTS/summary.json`` (complete, interrupted, failed, running), or None
+    when there is no readable summary."""
+    try:
+        return str(json.loads((results_dir / "summary.json").read_text())["status"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def write_metrics(results_dir: Path, metrics: dict) -> Path:

@@ -867,12 +867,19 @@ def _is_generated(path: Path, root: Path) -> bool:
     return False
 
 
-def _prepare_output(out_dir: Path, overwrite: bool) -> None:
+def check_output_folder(out_dir: Path, overwrite: bool) -> None:
+    """Raise :class:`OutputError` when :func:`generate_sequence` could not write into
+    ``out_dir`` (a file, or a folder with files and no ``overwrite``); changes nothing."""
+    out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise OutputError(f"{out_dir} is a file; give a folder for the synthetic sequence")
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
+        raise OutputError(f"{out_dir} is not empty; pass --overwrite to replace it or choose another folder")
+
+
+def _prepare_output(out_dir: Path, overwrite: bool) -> None:
+    check_output_folder(out_dir, overwrite)
     if out_dir.is_dir() and any(out_dir.iterdir()):
-        if not overwrite:
-            raise OutputError(f"{out_dir} is not empty; pass --overwrite to replace it or choose another folder")
         removed = 0
         for path in sorted(out_dir.rglob("*"), reverse=True):
             if path.is_file() and _is_generated(path, out_dir):

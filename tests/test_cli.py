@@ -93,6 +93,10 @@ def make_bad_input(tmp_path, problem):
         args += ["--set", "seed=-1"]
     elif problem == "bad init box":
         args += ["--init-box", "1,2,3"]
+    elif problem == "init box off the image":
+        args += ["--init-box", "1000,1000,2000,2000"]
+    elif problem == "init box corners swapped":
+        args += ["--init-box", "20,15,4,3"]
     elif problem == "init mask size":
         cv2.imwrite(str(tmp_path / "mask.png"), np.full((10, 10), 255, np.uint8))
         args += ["--init-object", tmp_path / "mask.png"]
@@ -121,6 +125,8 @@ BAD_INPUTS = {
     "negative seed": "'seed' must be a whole number >= 0",
     "fractional width": "width must be a whole number",
     "bad init box": "--init-box must be four integers",
+    "init box off the image": "leaves no pixels inside the 32x24 image",
+    "init box corners swapped": "top-left corner X0,Y0 first",
     "init mask size": "initial object mask",
     "missing init mask": "does not exist",
 }
@@ -156,3 +162,86 @@ def test_export_object_and_plot_errors(tmp_path):
     assert_one_line_error(run("export-object", tmp_path / "res", 1, "--out", tmp_path / "o.ply"), "has no object 1")
     assert_one_line_error(run("plot", tmp_path / "res"), "landmarks.csv does not exist")
     assert_one_line_error(run("evaluate", tmp_path / "res", tmp_path / "res"), "")
+
+
+def test_export_object_input_errors(tmp_path):
+    assert_one_line_error(run("export-object", tmp_path / "nowhere", 1, "--out", tmp_path / "o.ply"),
+                          "results folder")
+    (tmp_path / "res" / "objects" / "object_1").mkdir(parents=True)
+    assert_one_line_error(run("export-object", tmp_path / "res", 1, "--out", tmp_path / "o.ply", "--timestamp", "1"),
+                          "with --world")
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["reconstruct", "seq"], "Missing option '--out'"),
+    (["reconstrut"], "No such command 'reconstrut'"),
+    (["reconstruct", "seq", "--out", "o", "--max-frames", "abc"], "'--max-frames'"),
+    (["export-object", "res", "one", "--out", "o.ply"], "object_id"),
+])
+def test_usage_errors_give_one_line(argv, fragment, capsys):
+    from jsr.cli import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    assert stop.value.code == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) <= 2 and lines[0].startswith("error:") and fragment in captured.err, captured.err
+    assert captured.out == ""
+
+
+def _stop_after(monkeypatch, frames: int, stop: BaseException):
+    """Make the reconstructor raise ``stop`` on frame ``frames`` (0-based)."""
+    from jsr.pipeline.reconstruct import Reconstructor
+
+    process = Reconstructor.process
+
+    def process_then_stop(self, frame):
+        if len(self.reports) == frames:
+            raise stop
+        return process(self, frame)
+
+    monkeypatch.setattr(Reconstructor, "process", process_then_stop)
+
+
+@pytest.mark.parametrize("stop, code", [("interrupt", 130), ("terminate", 143)])
+def test_stopped_run_still_prints_its_json_line(tmp_path, monkeypatch, stop, code):
+    from jsr.cli import Terminated
+
+    seq = write_tiny_tum(tmp_path / "seq")
+    _stop_after(monkeypatch, 2, KeyboardInterrupt() if stop == "interrupt" else Terminated("terminated by SIGTERM"))
+    result = runner.invoke(app, ["reconstruct", str(seq), "--out", str(tmp_path / "o"), "--json", "-q"])
+    assert result.exit_code == code, result.output
+    lines = result.stdout.strip().splitlines()
+    assert len(lines) == 1, result.stdout
+    summary = json.loads(lines[0])
+    assert summary["status"] == "interrupted" and summary["frames_processed"] == 2
+
+
+def test_internal_error_is_one_line(tmp_path, monkeypatch):
+    seq = write_tiny_tum(tmp_path / "seq")
+    _stop_after(monkeypatch, 1, RuntimeError("boom"))
+    result = run("reconstruct", seq, "--out", tmp_path / "o", "-q")
+    assert_one_line_error(result, "internal error (RuntimeError: boom)")
+    assert result.exit_code == 1
+    assert json.loads((tmp_path / "o" / "summary.json").read_text())["status"] == "failed"
+
+
+def test_synth_reports_bad_options_before_any_progress(tmp_path):
+    result = run("synth", tmp_path / "s", "--motion", "wobble")
+    assert_one_line_error(result, "wobble")
+    assert len(result.output.strip().splitlines()) == 1, result.output
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "keep.txt").write_text("mine")
+    result = run("synth", tmp_path / "full", "--frames", "3")
+    assert_one_line_error(result, "is not empty")
+    assert len(result.output.strip().splitlines()) == 1, result.output
+
+
+def test_frames_refuses_a_full_folder(tmp_path):
+    seq = write_tiny_tum(tmp_path / "seq")
+    (tmp_path / "f").mkdir()
+    (tmp_path / "f" / "old.png").write_bytes(b"x")
+    assert_one_line_error(run("frames", seq, "--out", tmp_path / "f", "-q"), "pass --overwrite")
+    result = run("frames", seq, "--out", tmp_path / "f", "--overwrite", "-q", "--max-frames", "1")
+    assert result.exit_code == 0, result.output

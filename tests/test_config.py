@@ -53,6 +53,7 @@ def test_file_then_overrides(tmp_path):
         ("ransac:\n  min_inlier_ratio: 1.5\n", "ransac.min_inlier_ratio"),
         ("- a\n- b\n", "mapping"),
         ("ransac: [\n", "not valid YAML"),
+        ("ransac:\n  min_matches: 3\n  seed: [1\n", "not valid YAML: line 4"),  # where, to find it
     ],
 )
 def test_bad_config_files_name_the_key(tmp_path, text, fragment):

@@ -60,6 +60,8 @@ def test_missing_files_are_skipped_and_counted(tmp_path):
     assert sequence.report.missing_files == 1
     assert sequence.report.unmatched == 1
     assert sequence.report.listed == 7
+    missing = colour_paths(write_tiny_tum(tmp_path / "whole", frames=6))[1].relative_to(tmp_path / "whole")
+    assert any(str(missing) in note for note in sequence.report.notes)  # the note names the file
 
 
 def test_depth_outside_range_becomes_invalid(tmp_path):
@@ -110,6 +112,12 @@ def test_camera_yaml_and_presets(tmp_path):
         load_camera_yaml(path)
     path.write_text("fx: 500\nfy: 501\ncx: 320\ncy: 1\nwidth: 640\nheight: 480\nfocal: 3\n")
     with pytest.raises(InputError, match="unknown key"):
+        load_camera_yaml(path)
+    path.write_text("fx: 500\nfy: abc\ncx: 320\ncy: 1\nwidth: 640\nheight: 480\n")
+    with pytest.raises(InputError, match="fy must be a number, got 'abc'"):  # the message names the key
+        load_camera_yaml(path)
+    path.write_text("fx: 500\nfy: 5\ncx: 320\ncy: 1\nwidth: 640\nheight: 480\ndistortion: 0.1\n")
+    with pytest.raises(InputError, match="distortion must be a list"):
         load_camera_yaml(path)
 
 

@@ -398,6 +398,16 @@ def test_evaluate_run_without_object_ground_truth_or_masks(tmp_path):
     assert metrics["objects"] is None
     assert metrics["masks"] is None
     assert metrics["camera"]["ate"]["rmse"] < 1e-9
+    assert any("--save-masks" in note for note in metrics["notes"])  # the reader is told why
+
+
+def test_evaluate_run_says_when_the_run_did_not_complete(tmp_path):
+    sequence, results, _ = make_run(tmp_path)
+    assert evaluate_run(results, sequence)["notes"] == [] and evaluate_run(results, sequence)["run_status"] is None
+    (results / "summary.json").write_text(json.dumps({"status": "interrupted"}))
+    metrics = evaluate_run(results, sequence)
+    assert metrics["run_status"] == "interrupted"
+    assert any("interrupted" in note for note in metrics["notes"])
 
 
 def test_evaluate_run_reports_missing_inputs(tmp_path):

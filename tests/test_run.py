@@ -55,3 +55,35 @@ def test_same_input_config_and_seed_give_identical_files(synth_sequence, tmp_pat
                 "static/mesh.ply", "static/cloud.ply"]
     for relative in compared:
         assert (tmp_path / "a" / relative).read_bytes() == (tmp_path / "b" / relative).read_bytes(), relative
+
+
+def test_ctrl_c_while_saving_does_not_cut_the_save(synth_sequence, tmp_path, monkeypatch):
+    """A second Ctrl-C, pressed while the results of an interrupted run are written, is
+    ignored until they are: summary.json and every map file are still there."""
+    import os
+    import signal
+
+    from jsr.pipeline.run import ResultsWriter
+
+    sequence = open_sequence(synth_sequence)
+    write_tables = ResultsWriter.write_tables
+    presses = []
+
+    def impatient_write_tables(self, reconstructor):
+        if reconstructor.reports and len(reconstructor.reports) == 3 and not presses:
+            presses.append(1)
+            os.kill(os.getpid(), signal.SIGINT)  # the second Ctrl-C, mid-save
+        write_tables(self, reconstructor)
+
+    def interrupt_after_three(report):
+        if report.frame_index == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(ResultsWriter, "write_tables", impatient_write_tables)
+    with pytest.raises(KeyboardInterrupt):
+        run_reconstruction(sequence, load_config(), tmp_path, on_frame=interrupt_after_three, flush_every=0)
+    assert presses
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["status"] == "interrupted" and summary["frames_processed"] == 3
+    assert (tmp_path / "static" / "landmarks.ply").is_file()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored

@@ -41,7 +41,8 @@ def export_object(
 
     ``kind`` picks ``mesh.ply``, ``cloud.ply`` or ``landmarks.ply`` (object frame). With
     ``in_world`` the model is moved by ``T_w_o`` of the frame at ``timestamp`` (the
-    nearest tracked one), or of the first tracked frame when ``timestamp`` is None.
+    nearest tracked one; a time outside the tracked span is an error), or of the first tracked
+    frame when ``timestamp`` is None; ``timestamp`` without ``in_world`` is an error.
     Returns what was written.
     """
     if kind not in MODEL_KINDS:
@@ -51,6 +52,10 @@ def export_object(
         raise InputError(f"output {out_path} must end in .ply")
     if out_path.exists() and not overwrite:
         raise OutputError(f"{out_path} already exists; pass --overwrite or choose another file")
+    if timestamp is not None and not in_world:
+        raise InputError("--timestamp picks the pose that places the object in the world: give it with --world")
+    if not Path(results_dir).is_dir():
+        raise InputError(f"results folder {results_dir} does not exist")
     folder = object_folder(results_dir, object_id)
     source = folder / f"{kind}.ply"
     if not source.is_file():
@@ -62,6 +67,13 @@ def export_object(
         timestamps, poses = read_tum_trajectory(folder / "trajectory.tum")
         if len(poses) == 0:
             raise InputError(f"object {object_id} was never tracked; it has no pose in the world")
+        if timestamp is not None:
+            # a frame's worth of slack either side (one pose: 0.1 s), no more: a time outside
+            # the tracked span has no pose of the object
+            slack = float(np.median(np.diff(timestamps))) if len(timestamps) > 1 else 0.1
+            if not timestamps[0] - slack <= timestamp <= timestamps[-1] + slack:
+                raise InputError(f"object {object_id} was tracked from {timestamps[0]:.6f} to {timestamps[-1]:.6f}; "
+                                 f"--timestamp {timestamp:.6f} is outside that span")
         index = 0 if timestamp is None else int(np.argmin(np.abs(timestamps - timestamp)))
         pose, chosen_timestamp = poses[index], float(timestamps[index])
         geometry.transform(pose)

@@ -76,9 +76,12 @@ def plot_landmark_counts(landmarks_csv: Path, out_png: Path, title: str | None =
         )
     keyframe_axis.set(xlabel="frame", ylabel="keyframes", title="Keyframes per map")
     landmark_axis.set(xlabel="frame", ylabel="landmarks", title="Landmarks per map")
+    from matplotlib.ticker import MaxNLocator
+
     for axis in (keyframe_axis, landmark_axis):
         axis.grid(alpha=0.3)
         axis.legend(fontsize=8)
+        axis.yaxis.set_major_locator(MaxNLocator(integer=True))  # counts: no 1.5 keyframes
     if title:
         figure.suptitle(title)
     figure.tight_layout()

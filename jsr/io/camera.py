@@ -22,7 +22,7 @@ import yaml
 
 from jsr.errors import InputError
 from jsr.io.atomic import atomic_write_text
-from jsr.io.text import read_user_text
+from jsr.io.text import describe_yaml_error, read_user_text
 
 
 @dataclass(frozen=True)
@@ -144,13 +144,21 @@ def camera_from_dict(data: object, source: str) -> CameraIntrinsics:
     for key in ("width", "height"):
         if isinstance(data[key], bool) or not isinstance(data[key], int):
             raise InputError(f"{source}: {key} must be a whole number of pixels, got {data[key]!r}")
-    try:
-        values = {key: float(data[key]) for key in ("fx", "fy", "cx", "cy")}
-        width, height = int(data["width"]), int(data["height"])
-        depth_scale = float(data.get("depth_scale", 5000.0))
-        distortion = tuple(float(k) for k in (data.get("distortion") or ()))
-    except (TypeError, ValueError) as error:
-        raise InputError(f"{source}: a value is not a number ({error})") from None
+    def number(key: str, value) -> float:
+        try:
+            if isinstance(value, bool):
+                raise ValueError
+            return float(value)
+        except (TypeError, ValueError):
+            raise InputError(f"{source}: {key} must be a number, got {value!r}") from None
+
+    values = {key: number(key, data[key]) for key in ("fx", "fy", "cx", "cy")}
+    width, height = int(data["width"]), int(data["height"])
+    depth_scale = number("depth_scale", data.get("depth_scale", 5000.0))
+    raw_distortion = data.get("distortion") or ()
+    if not isinstance(raw_distortion, (list, tuple)):
+        raise InputError(f"{source}: distortion must be a list [k1, k2, p1, p2, k3], got {raw_distortion!r}")
+    distortion = tuple(number("distortion", k) for k in raw_distortion)
     if not np.all(np.isfinite(list(values.values()) + [depth_scale, *distortion])):
         raise InputError(f"{source}: every value must be a finite number")
     if width <= 0 or height <= 0 or values["fx"] <= 0 or values["fy"] <= 0 or depth_scale <= 0:
@@ -167,7 +175,7 @@ def load_camera_yaml(path: Path) -> CameraIntrinsics:
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as error:
-        raise InputError(f"cannot read camera file {path}: {str(error).splitlines()[0]}") from None
+        raise InputError(f"camera file {path} is not valid YAML: {describe_yaml_error(error)}") from None
     return camera_from_dict(data, str(path))
 
 

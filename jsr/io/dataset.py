@@ -237,12 +237,12 @@ def check_frame_shapes(color: np.ndarray, depth: np.ndarray, intrinsics: CameraI
     """Colour and depth must have the same size, and that of the camera calibration."""
     if color.shape[:2] != depth.shape:
         raise InputError(
-            f"depth {entry.depth_path.name} is {depth.shape[1]}x{depth.shape[0]} but colour "
+            f"depth {entry.depth_path} is {depth.shape[1]}x{depth.shape[0]} but colour "
             f"{entry.color_path.name} is {color.shape[1]}x{color.shape[0]}; register depth to colour first"
         )
     if (intrinsics.width, intrinsics.height) != (color.shape[1], color.shape[0]):
         raise InputError(
-            f"{entry.color_path.name} is {color.shape[1]}x{color.shape[0]} but the camera calibration is "
+            f"{entry.color_path} is {color.shape[1]}x{color.shape[0]} but the camera calibration is "
             f"{intrinsics.width}x{intrinsics.height}; use a matching camera.yaml or --camera FILE"
         )
 
@@ -263,10 +263,12 @@ def list_tum_entries(root: Path, max_time_difference: float) -> tuple[list[Frame
     )
     report.unmatched = len(colours) - len(pairs)
     entries = []
+    missing = []
     for i, j in pairs:
         color_path, depth_path = root / colours[i][1], root / depths[j][1]
         if not color_path.is_file() or not depth_path.is_file():
             report.missing_files += 1
+            missing.append(colours[i][1] if not color_path.is_file() else depths[j][1])
             continue
         entries.append(FrameEntry(colours[i][0], color_path, depth_path))
     if report.unmatched:
@@ -274,7 +276,9 @@ def list_tum_entries(root: Path, max_time_difference: float) -> tuple[list[Frame
             f"{report.unmatched} colour images had no depth within {max_time_difference} s and were skipped"
         )
     if report.missing_files:
-        report.notes.append(f"{report.missing_files} listed frames had a missing file and were skipped")
+        named = ", ".join(missing[:3]) + (f" and {len(missing) - 3} more" if len(missing) > 3 else "")
+        frames = "frame" if report.missing_files == 1 else "frames"
+        report.notes.append(f"{report.missing_files} listed {frames} skipped: missing file {named} in {root}")
     return entries, report
 
 

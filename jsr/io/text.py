@@ -20,3 +20,12 @@ def read_user_text(path: Path, what: str, error: type[JsrError] = InputError) ->
         raise error(f"{what} {path} is not a text file") from None
     except OSError as os_error:
         raise error(f"cannot read {what} {path}: {os_error.strerror}") from None
+
+
+def describe_yaml_error(error: Exception) -> str:
+    """One line for a PyYAML parse error: where (1-based line and column) and what."""
+    mark = getattr(error, "problem_mark", None)
+    problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+    if mark is None:
+        return problem
+    return f"line {mark.line + 1}, column {mark.column + 1}: {problem}"

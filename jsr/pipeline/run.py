@@ -25,7 +25,10 @@ from __future__ import annotations
 
 import logging
 import platform
+import signal
+import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable
 
@@ -143,6 +146,7 @@ class ResultsWriter:
             "version": __version__,
             "status": status,
             "error": error,
+            "output": str(self.out_dir),
             "input": {
                 "sequence": str(self.sequence.root),
                 "kind": self.sequence.kind,
@@ -175,6 +179,29 @@ class ResultsWriter:
         return summary
 
 
+@contextmanager
+def interrupts_deferred():
+    """Within the block, SIGINT (Ctrl-C) and SIGTERM are noted and logged, not raised: the
+    results of the frames done are being written, and a second Ctrl-C must not leave them
+    half written. Only the main thread can set signal handlers; elsewhere it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+
+    def note(signum, _frame) -> None:
+        received.append(signum)
+        logger.warning("still saving the results of the frames done; %s ignored until they are written",
+                       signal.Signals(signum).name)
+
+    previous = {signum: signal.signal(signum, note) for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
 def run_reconstruction(
     sequence: RGBDSequence,
     config: Config,
@@ -191,7 +218,8 @@ def run_reconstruction(
     ownership mask of every frame to ``masks/``; ``init_object_mask`` ``(H, W)`` bool starts
     object map 1 on the first frame (see :class:`Reconstructor`). Returns the summary dict
     (also written to ``summary.json``). A KeyboardInterrupt or any exception is re-raised after
-    the results of the frames done have been written.
+    the results of the frames done have been written; further Ctrl-C or SIGTERM while they are
+    written are ignored (:func:`interrupts_deferred`).
     """
     writer = ResultsWriter(out_dir, sequence, config)
     writer.write_config()
@@ -218,16 +246,17 @@ def run_reconstruction(
 
             write_dense_models(reconstructor, sequence, config, out_dir)
         status = "complete"
-    except KeyboardInterrupt:
-        status, error = "interrupted", "interrupted by the user"
+    except KeyboardInterrupt as interrupt:
+        status, error = "interrupted", str(interrupt) or "interrupted by the user"
         raise
     except Exception as exception:  # a bug or a bad frame: keep what was done, then re-raise
         status, error = "failed", f"{type(exception).__name__}: {exception}"
         raise
     finally:
-        seconds = time.perf_counter() - started if tracking_seconds is None else tracking_seconds
-        if status != "complete":
-            writer.write_tables(reconstructor)
-        summary = writer.write_summary(reconstructor, status, seconds, error)
-        reconstructor.close()
+        with interrupts_deferred():
+            seconds = time.perf_counter() - started if tracking_seconds is None else tracking_seconds
+            if status != "complete":
+                writer.write_tables(reconstructor)
+            summary = writer.write_summary(reconstructor, status, seconds, error)
+            reconstructor.close()
     return summary
