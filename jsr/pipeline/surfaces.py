@@ -125,6 +125,9 @@ def _fpfh(model: SurfaceModel, voxel: float) -> np.ndarray:
 
 
 SUPPORT_CHUNK = 256  # RANSAC hypotheses scored together (bounds the memory of the scoring)
+RANKED_HYPOTHESES = 200  # the best-supported RANSAC hypotheses from which the ICP starts are chosen
+FITTING_HYPOTHESES = 6  # ... besides the best-supported distinct ones, this many best-fitting distinct ones
+FIT_SAMPLE = 150  # region points (evenly spread over its list) on which a hypothesis's fit is measured
 COLOR_WEIGHT = 1.0  # weight of the neighbourhood colour (RGB in [0, 1]) against FPFH (histograms summing to 1)
 
 
@@ -246,7 +249,12 @@ def _colored_icp(region: SurfaceModel, model: SurfaceModel, T: np.ndarray, voxel
 
 def fitness(region: SurfaceModel, model_tree: cKDTree, T: np.ndarray, voxel: float) -> float:
     """Share of the region's points within 1.5 voxels of the model under ``T``."""
-    distance, _ = model_tree.query(transform_points(T, region.points), distance_upper_bound=1.5 * voxel)
+    return _share_on_surface(region.points, model_tree, T, voxel)
+
+
+def _share_on_surface(points: np.ndarray, model_tree: cKDTree, T: np.ndarray, voxel: float) -> float:
+    """Share of ``points`` ``(N, 3)`` within 1.5 voxels of the model points in ``model_tree`` under ``T``."""
+    distance, _ = model_tree.query(transform_points(T, points), distance_upper_bound=1.5 * voxel)
     return float(np.isfinite(distance).mean())
 
 
@@ -267,7 +275,8 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
 
     Nearest neighbours in FPFH and neighbourhood colour give point pairs; RANSAC draws ``iterations`` triples from them
     (triangles whose side lengths disagree by over 10% are skipped) and keeps the
-    ``hypotheses`` distinct alignments most pairs agree with. Each is also tried turned by 180 degrees about the
+    ``hypotheses`` distinct alignments most pairs agree with, and :data:`FITTING_HYPOTHESES`
+    more that put most of a sample of the region on the model surface. Each is also tried turned by 180 degrees about the
     axes of the aligned region (its near-symmetries: features must tell them apart), then
     refined by point-to-plane ICP, and each distinct fit covering ``min_fitness`` of the
     region once more by coloured ICP. Returned: alignments with at least ``min_fitness`` of the region on the
@@ -301,21 +310,30 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
         chunk = slice(start, start + SUPPORT_CHUNK)
         moved = np.einsum("bij,kj->bki", rotations[chunk], source) + translations[chunk, None]
         support[chunk] = (np.linalg.norm(moved - target[None], axis=2) < 1.5 * voxel).sum(axis=1)
-    ranked = np.argsort(-support, kind="stable")
-    order: list[int] = []  # the best-supported distinct alignments
-    for index in ranked[:200]:
-        T = make_transform(rotations[index], translations[index])
-        if all(not same_placement(T, make_transform(rotations[k], translations[k]), centre, 0.05, 20.0)
-               for k in order):
-            order.append(int(index))
-        if len(order) == hypotheses:
-            break
+    ranked = np.argsort(-support, kind="stable")[:RANKED_HYPOTHESES]
+    transforms = [make_transform(rotations[index], translations[index]) for index in ranked]
 
+    def keep_distinct(candidates, kept: list[int], limit: int) -> None:
+        for position in candidates:
+            if len(kept) == limit:
+                break
+            if all(not same_placement(transforms[position], transforms[k], centre, 0.05, 20.0) for k in kept):
+                kept.append(int(position))
+
+    order: list[int] = []  # positions in ``ranked`` of the best-supported distinct alignments
+    keep_distinct(range(len(ranked)), order, hypotheses)
+    # Feature support ranks poorly on flat faces, whose FPFH pairs are near random: the true
+    # alignment can fall below the best-supported ones. The best-fitting ones (share of a
+    # sample of the region on the model surface) join them.
     tree = cKDTree(model.points)
+    sample = region.points[np.linspace(0, len(region.points) - 1, min(FIT_SAMPLE, len(region.points))).astype(int)]
+    sample_fitness = np.array([_share_on_surface(sample, tree, T, voxel) for T in transforms])
+    keep_distinct(np.argsort(-sample_fitness, kind="stable"), order, hypotheses + FITTING_HYPOTHESES)
+
     model_turns = _symmetry_axes(model.points, model.normals)
     starts = []
-    for index in order:
-        T = make_transform(rotations[index], translations[index])
+    for position in order:
+        T = transforms[position]
         aligned = transform_points(T, region.points)
         aligned_normals = region.normals @ T[:3, :3].T
         starts += [T] + [_half_turn(axis, through) @ T
