@@ -141,6 +141,7 @@ class DetectionConfig:
     min_motion: float = 0.03
     min_motion_degrees: float = 3.0
     displaced_share: float = 0.8
+    where_lost: bool = True
     merge_gap_pixels: int = 2
     min_object_points: int = 15
 

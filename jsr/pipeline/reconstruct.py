@@ -695,18 +695,17 @@ class Reconstructor:
         moved = (stats.matched >= min_features) & (stats.outlier_ratio >= 1.0 - UNSUPPORTED_STATIC_SHARE) & (
             static_count < min_features)
         candidates &= ~seen_static | moved
-        # A face seen at a grazing angle has keypoints but few with depth: no static inlier says
-        # it is static, and a good share of it lying in space the static keyframes saw empty
-        # says it moved in. This overrides seen_static: the rest of such a face may agree with
-        # a surface the keyframes saw, the object's own face in the same plane before a jump.
+        # A face with keypoints none of which is a static inlier (seen at a grazing angle, with
+        # few of them with depth, or a side the camera had not seen before the object moved),
+        # a good share of which lies in space the static keyframes saw empty: it moved in. This
+        # overrides seen_static: the rest of such a face may agree with a surface the keyframes
+        # saw, the object's own face in the same place before a jump.
         sampled = violations + consistent
         features = np.array([len(i) for i in measurements.segments.point_indices])
-        three_d = np.bincount(point_segment[measurements.points.has_depth & (point_segment >= 0)],
-                              minlength=len(measurements.segments))
         share = self.config.objects.grow_violation_share
         if share > 0:
-            candidates |= (features >= min_features) & (three_d < min_features) & (segment_owner == 0) & (
-                static_count == 0) & (sampled >= self._free_space_min_samples()) & (violations >= share * sampled)
+            candidates |= (features >= min_features) & (segment_owner == 0) & (static_count == 0) & (
+                sampled >= self._free_space_min_samples()) & (violations >= share * sampled)
         if inside is not None:
             # Inside the object's extent and not shown static by its features: the object's own
             # faces, even without reliable 3D features (seen at a grazing angle).
@@ -849,6 +848,11 @@ class Reconstructor:
         in_place = by_outliers
         by_outliers = self._not_in_place(measurements, static, by_outliers, inliers, report.T_w_c, keep_unknown=False)
         in_place = [s for s in in_place if s not in by_outliers]
+        # where an object this frame lost was a frame ago: that object, moved, whatever its outliers say
+        where_lost = self._where_just_lost(measurements, sorted(set(by_outliers) | set(in_place)), outcomes)
+        if where_lost:
+            logger.debug("frame %d: segments %s lie where a just-lost object was", measurements.frame_index,
+                         where_lost)
         violations, consistent = self._free_space(frame, measurements)
         by_outliers = self._rigidly_moved(frame, measurements, static, by_outliers, inliers)
         if in_place and self.config.detection.in_place_turn_degrees > 0:
@@ -867,7 +871,7 @@ class Reconstructor:
         # its landmarks (a depth edge, redkitchen300 seed 1: 7 of 10 in place) has many.
         by_displacement = [segment for segment in by_displacement if not self._mostly_in_place(
             measurements, static, segment, inliers, report.T_w_c, self.config.detection.min_segment_features)]
-        moving = sorted(set(by_outliers) | set(by_free_space) | set(by_displacement))
+        moving = sorted(set(by_outliers) | set(by_free_space) | set(by_displacement) | set(where_lost))
         moving = [s for s in moving if assignment.segment_owner[s] == 0]
         if not moving:
             return
@@ -891,6 +895,25 @@ class Reconstructor:
             if object_map is not None:
                 report.objects_created.append(object_map.object_id)
                 report.objects_tracked.append(object_map.object_id)
+
+    def _where_just_lost(self, measurements: FrameMeasurements, candidates: list[int],
+                         outcomes: list[ObjectTrackingResult]) -> list[int]:
+        """The candidate segments at least half of whose pixels were, in the previous frame,
+        given to an object that this frame's registration lost: most likely that object,
+        moved (a jump that turned it so that most of its landmarks no longer match)."""
+        previous = self._previous_mask
+        if not self.config.detection.where_lost or previous is None or not self.reports:
+            return []
+        tracked_before = set(self.reports[-1].objects_tracked)
+        lost_ids = [outcome.object_map.object_id for outcome in outcomes
+                    if not outcome.success and outcome.object_map.object_id in tracked_before]
+        if not lost_ids:
+            return []
+        where = np.isin(previous, lost_ids)
+        labels = measurements.segments.label_image
+        total = np.maximum(np.asarray(measurements.segments.pixel_counts), 1)
+        inside = np.bincount(labels[where & (labels >= 0)], minlength=len(total))
+        return [segment for segment in candidates if inside[segment] >= 0.5 * total[segment]]
 
     def _outliers_in_place(self, measurements: FrameMeasurements, static: StaticRegistration, segment: int,
                            static_inliers: np.ndarray, T_w_c: np.ndarray) -> tuple[int, int]:
