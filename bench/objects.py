@@ -1,7 +1,7 @@
 """Moving-object benchmark: detection, object maps, object tracking, masks and map hygiene.
 
     python bench/objects.py [--frames N] [--sequences synth_jump,synth_smooth,...] [--set section.key=value]
-                            [--seed S[,S...]] [--pipeline-seeds P[,P...]] [--json FILE] [--keep-synthetic DIR]
+                            [--seed S[,S...]] [--size WxH] [--pipeline-seeds P[,P...]] [--json FILE] [--keep-synthetic DIR]
 
 Runs :class:`jsr.pipeline.reconstruct.Reconstructor` in-process over every frame of each
 sequence and compares what it did with the ground truth (``groundtruth.txt``,
@@ -14,7 +14,7 @@ sequence and compares what it did with the ground truth (``groundtruth.txt``,
 * ``kitchen_box120``  ``../shared/data/kitchen_box120`` (real kitchen, composited box jumping
                       every 20 frames); skipped when ``../shared/data`` is absent.
 
-Synthetic sequences are 640x480, ``--frames`` frames (default 60), generated with the same seed
+Synthetic sequences are 640x480 (``--size``), ``--frames`` frames (default 60), generated with the same seed
 (``--seed``) into a temporary folder; ``--seed 1,2,3`` runs each synthetic sequence once per
 seed, one column each (seed 1 alone hid misses that seeds 2 and 3 show). The seed fixes the camera path and the static room
 independently of the objects, so the ``--objects 0`` sequence with the same seed is exactly the
@@ -140,16 +140,17 @@ TARGETS = {
 # Sequences
 
 
-def synthetic_sequence(root: Path, name: str, frames: int, seed: int) -> Path:
-    """Generate (or reuse, when its synth.yaml has the same options) a synthetic sequence."""
+def synthetic_sequence(root: Path, name: str, frames: int, seed: int, size: tuple[int, int] = SYNTH_SIZE) -> Path:
+    """Generate (or reuse, when its synth.yaml has the same options) a synthetic sequence of
+    ``size`` ``(width, height)`` pixels."""
     import yaml
 
     from jsr.synth import SynthOptions, generate_sequence
 
     objects, motion, simultaneous = SYNTHETIC[name] if name in SYNTHETIC else (0, "static", False)
     options = SynthOptions(frames=frames, objects=objects, motion=motion, simultaneous=simultaneous,
-                           width=SYNTH_SIZE[0], height=SYNTH_SIZE[1], seed=seed)
-    out = root / f"{name}_f{frames}_s{seed}"
+                           width=size[0], height=size[1], seed=seed)
+    out = root / (f"{name}_f{frames}_s{seed}" + ("" if size == SYNTH_SIZE else f"_{size[0]}x{size[1]}"))
     metadata = out / "synth.yaml"
     if metadata.is_file() and (out / "rgb.txt").is_file():
         from dataclasses import asdict
@@ -579,11 +580,11 @@ def benchmark_sequence(name: str, seed: int, args, config, work: Path, twins: di
                         min_depth=config.input.min_depth, max_depth=config.input.max_depth)
     if name in SYNTHETIC:
         frames = args.frames or DEFAULT_SYNTH_FRAMES
-        path = synthetic_sequence(work, name, frames, seed)
+        path = synthetic_sequence(work, name, frames, seed, args.size)
         sequence = open_sequence(path, **open_options)
-        twin_key, twin_frames = ("synth_static", frames, seed, config.seed), None
+        twin_key, twin_frames = ("synth_static", frames, seed, args.size, config.seed), None
         def twin_location() -> Path:
-            return synthetic_sequence(work, "synth_static", frames, seed)
+            return synthetic_sequence(work, "synth_static", frames, seed, args.size)
     else:
         path = SHARED / name
         sequence = open_sequence(path, max_frames=args.frames, **open_options)
@@ -649,7 +650,16 @@ def main() -> int:
     parser.add_argument("--json", type=Path, default=None, help="also write every figure to this JSON file")
     parser.add_argument("--keep-synthetic", type=Path, default=None,
                         help="generate synthetic sequences into this folder (outside the repo) and reuse them")
+    parser.add_argument("--size", default=f"{SYNTH_SIZE[0]}x{SYNTH_SIZE[1]}",
+                        help="WIDTHxHEIGHT of the synthetic sequences (default %(default)s; sample_data is 320x240)")
     args = parser.parse_args()
+    try:
+        size = tuple(int(part) for part in args.size.lower().split("x"))
+        if len(size) != 2 or min(size) < 64:
+            raise ValueError
+    except ValueError:
+        parser.error(f"--size {args.size!r}: give WIDTHxHEIGHT, e.g. 320x240 (at least 64 each)")
+    args.size = size
     names = [name.strip() for name in args.sequences.split(",") if name.strip()]
     unknown = [name for name in names if name not in SYNTHETIC and name not in REAL]
     if unknown:
