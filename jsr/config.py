@@ -54,6 +54,7 @@ class FeaturesConfig:
     depth_window: int = 2
     depth_spread_sigmas: float = 6.0
     min_depth_spread: float = 0.02
+    slanted_max_incidence: float = 0.0
     undistort: bool = True
 
 
@@ -155,6 +156,7 @@ class ObjectsConfig:
     segment_completion: bool = True
     grow_segments: bool = True
     grow_violation_share: float = 0.3
+    grow_unmatched: bool = False
     grow_inside_extent: bool = True
     split_mixed_segments: bool = True
     extent_margin: float = 0.03
@@ -315,6 +317,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "objects.free_space_sigmas": (lambda v: v > 0, "positive"),
     "objects.shape_voxel": (lambda v: v > 0, "positive"),
     "features.object_detail_margin": (lambda v: v >= 0, "at least 0"),
+    "features.slanted_max_incidence": (lambda v: 0 <= v < 90, "in [0, 90) degrees (0: off)"),
     "objects.shape_radius_px": (lambda v: v > 0, "positive"),
     "detection.displaced_share": (lambda v: 0 <= v <= 1, "in [0, 1] (0: off)"),
     "objects.shape_min_fitness": (lambda v: 0 < v <= 1, "in (0, 1]"),

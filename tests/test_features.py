@@ -14,6 +14,7 @@ from jsr.pipeline.features import (
     detect_detail_keypoints,
     detect_keypoints,
     join_boxes,
+    keep_slanted_within_segments,
     extract_point_measurements,
     lookup_depth,
     to_grey,
@@ -226,3 +227,50 @@ def test_join_boxes_merges_overlaps():
     assert join_boxes([(0, 0, 10, 10), (5, 5, 20, 20), (30, 30, 40, 40)]) == [(0, 0, 20, 20), (30, 30, 40, 40)]
     assert join_boxes([(0, 0, 10, 10), (10, 0, 20, 10)]) == [(0, 0, 10, 10), (10, 0, 20, 10)]  # touching only
     assert join_boxes([(5, 5, 5, 9)]) == []  # empty
+
+
+def test_lookup_accepts_a_slanted_surface_but_not_a_depth_edge():
+    """A surface seen at a grazing angle spreads its window's depths beyond the limit but on
+    one plane: a 3D point at the plane's depth, if it is seen at most
+    features.slanted_max_incidence degrees from face-on. A depth edge, even on a slanted
+    surface, is not."""
+    config = Config()
+    config.features.slanted_max_incidence = 70.0  # off by default
+    focal = 262.5  # 320x240
+    columns = np.arange(40, dtype=np.float32)[None, :].repeat(40, axis=0)
+    slanted = 0.794 + 0.0103 * columns  # 1.03 cm per pixel at 1 m: 69.7 degrees from face-on, 4.1 cm over 5 px
+    pixels = np.array([[20.0, 20.0]])
+    z, valid = lookup_depth(slanted, pixels, config.features, config.noise, focal)
+    assert valid[0] and z[0] == pytest.approx(1.0, abs=1e-4)
+    assert not lookup_depth(slanted, pixels, config.features, config.noise)[1][0]  # no focal length: plain
+    config.features.slanted_max_incidence = 0.0
+    assert not lookup_depth(slanted, pixels, config.features, config.noise, focal)[1][0]
+    config.features.slanted_max_incidence = 65.0
+    assert not lookup_depth(slanted, pixels, config.features, config.noise, focal)[1][0]
+    config.features.slanted_max_incidence = 70.0
+    edge = slanted.copy()
+    edge[:, 21:] += 0.08  # an 8 cm step one pixel right of the keypoint
+    assert not lookup_depth(edge, pixels, config.features, config.noise, focal)[1][0]
+
+
+def test_slanted_keypoints_across_a_segment_border_become_2d():
+    """A slanted window reaching into another segment (a crease: a box face on a grazing table
+    top) gives no 3D point; one inside its segment keeps its depth, and so does a plain one."""
+    config = Config()
+    config.features.undistort = False
+    config.features.slanted_max_incidence = 70.0  # off by default
+    columns = np.arange(40, dtype=np.float32)[None, :].repeat(40, axis=0)
+    depth = 0.794 + 0.0103 * columns
+    depth[:, :10] = 1.3  # a flat, frontal part: plain lookups
+    pixels = np.array([[20.0, 20.0], [29.0, 20.0], [4.0, 20.0], [8.0, 20.0]])
+    intrinsics = CAMERA_PRESETS["tum-fr1"].with_resolution(320, 240)
+    descriptors = np.zeros((len(pixels), 128), dtype=np.float32)
+    points = build_point_measurements(pixels, descriptors, depth, intrinsics, config.features, config.noise)
+    assert points.has_depth.tolist() == [True, True, True, False]  # (8, 20) straddles the step at column 10
+    labels = np.zeros((40, 40), dtype=np.int32)
+    labels[:, 30:] = 1  # a segment border inside the window of (29, 20)
+    turned = keep_slanted_within_segments(points, pixels, depth, labels, config.features, config.noise)
+    assert turned == 1 and points.has_depth.tolist() == [True, False, True, False]
+    assert np.isnan(points.points[1]).all() and points.sigma_z[1] == 0.0
+    config.features.slanted_max_incidence = 0.0
+    assert keep_slanted_within_segments(points, pixels, depth, labels, config.features, config.noise) == 0

@@ -26,6 +26,7 @@ from jsr.pipeline.features import (
     create_sift,
     detect_detail_keypoints,
     detect_keypoints,
+    keep_slanted_within_segments,
     to_grey,
 )
 from jsr.pipeline.measurements import FrameMeasurements
@@ -132,6 +133,11 @@ class FrontEnd:
         segments = build_segments(
             planes, frame.depth, points, self.intrinsics, config.segments, config.noise, keypoint_pixels=pixels
         )
+        straddling = keep_slanted_within_segments(points, pixels, frame.depth, segments.label_image, config.features,
+                                                  config.noise)
+        if straddling:
+            logger.debug("frame %d: %d slanted keypoints straddle a segment border: 2D points", frame.index,
+                         straddling)
         segments_ms = (time.perf_counter() - segments_start) * 1000.0
         total_ms = (time.perf_counter() - start) * 1000.0
         timings = {

@@ -102,6 +102,7 @@ TEXTURE_LOSS_MARGIN = 0.05  # a refinement that lowers the texture agreement (ov
 SHAPE_SEEN_THROUGH_VOXELS, SHAPE_SEEN_THROUGH_SIGMAS = 3.0, 3.0  # a model point is seen through beyond max(3 voxels, 3 sigma_Z)
 SELF_TEXTURE_MIN_OVERLAP = 0.5  # own views compared only where this share of one lies on the others
 SELF_TEXTURE_VIEWS = 6  # an object's latest keyframe samples that measure how its own views agree
+UNMATCHED_FEATURE_FACTOR = 2  # a face whose 3D features hardly match the static map grows into an object from twice min_segment_features of them
 DISPLACED_MIN_FACTOR = 2  # displaced landmarks (no match at all) are weaker evidence than outliers: twice as many needed
 SELF_TEXTURE_MIN = 0.2  # own views agreeing less (an object of one colour): no texture to tell fits apart (measured: kitchen_box120 0.38-0.51, synthetic 0.87-0.9)
 # two frames' rotations fitted to 5-15 points each differ by a few degrees (synth_two seed 3: 3.2)
@@ -706,6 +707,21 @@ class Reconstructor:
         if share > 0:
             candidates |= (features >= min_features) & (segment_owner == 0) & (static_count == 0) & (
                 sampled >= self._free_space_min_samples()) & (violations >= share * sampled)
+        if self.config.objects.grow_unmatched:
+            # A textured face where the static keyframes saw a surface, whose 3D features hardly
+            # match the static map at all: had the keyframes seen this texture there, its
+            # features would match their landmarks. They saw another surface within the
+            # free-space margin, the object's own face before it jumped (sample_data with
+            # features.slanted_max_incidence 70, frame 10: the box's second face, 24 3D
+            # features, 2 matched, where its front face had been). Off by default: a static
+            # surface with no match at all also passes when the static registration matched
+            # little in it (synth_jump seed 3 at 320x240, frame 39: a table top, 66 keypoints,
+            # 154 landmarks at its depth, none matched).
+            three_d = np.bincount(point_segment[measurements.points.has_depth & (point_segment >= 0)],
+                                  minlength=len(measurements.segments))
+            candidates |= seen_static & (segment_owner == 0) & (static_count == 0) & (
+                three_d >= UNMATCHED_FEATURE_FACTOR * min_features) & (
+                stats.matched <= UNSUPPORTED_STATIC_SHARE * three_d)
         if inside is not None:
             # Inside the object's extent and not shown static by its features: the object's own
             # faces, even without reliable 3D features (seen at a grazing angle).
@@ -1789,8 +1805,12 @@ class Reconstructor:
             & _little_static_support(measurements, static_inliers)
         found = np.flatnonzero(moving).tolist()
         if found:
-            logger.debug("frame %d: segments %s: %s of %s previous static inliers displaced", measurements.frame_index,
-                         found, displaced_count[found].tolist(), projecting[found].tolist())
+            # seen through: the surface measured behind them (the background an object left,
+            # or an object that turned away over its old place)
+            seen_through = np.bincount(segment[displaced & (measured > z)], minlength=len(segments))
+            logger.debug("frame %d: segments %s: %s of %s previous static inliers displaced (%s seen through)",
+                         measurements.frame_index, found, displaced_count[found].tolist(), projecting[found].tolist(),
+                         seen_through[found].tolist())
         return found
 
     def _retire_static_landmarks(self, static: StaticRegistration, assignment: FrameAssignment) -> None:
