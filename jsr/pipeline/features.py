@@ -29,10 +29,12 @@ over 5 pixels, so a whole face had no 3D keypoint (at 640x480 half as much). A w
 depths lie on one plane (largest residual of the least-squares plane at most half the limit: a
 step of h leaves up to 0.4 h) gives the plane's depth at the keypoint when that plane is seen
 at most ``slanted_max_incidence`` degrees from face-on: beyond, a pixel of keypoint error
-is several pixels' footprint of depth error. Such a window may still span a crease (the bottom edge of a box on a
-grazing table top), so once the frame is segmented, :func:`keep_slanted_within_segments`
-turns back into 2D points the slanted ones whose window reaches another segment (measured at
-320x240: without that, 3-8% of the object maps' landmarks lay on the table beside the box).
+is several pixels' footprint of depth error. Such a window may still span a crease (the bottom
+edge of a box on a grazing table top), so once the frame is segmented,
+:func:`keep_slanted_within_segments` turns back into 2D points the slanted ones whose window
+reaches another segment (measured at 320x240: without that, 3-8% of the object maps' landmarks
+lay on the table beside the box). Off by default (``slanted_max_incidence`` 0): the measured
+trade-off is in ``configs/default.yaml``.
 
 The 3D point back-projects the undistorted keypoint (when the camera has distortion and
 ``undistort`` is on) with that depth; ``sigma_z = noise.sigma_z_coefficient * Z^2``.
