@@ -78,14 +78,9 @@ def test_moving_object_is_detected_within_three_frames(jump_sequence, jump_run):
 
 
 def test_object_pose_follows_the_true_object(jump_sequence, jump_run):
-    true_poses, _ = true_object_poses(jump_sequence)
-    _, gt_cameras = jump_run.sequence.groundtruth
     object_map = jump_run.reconstructor.object_maps[0]
-    frames = [index for index, _, _ in object_map.trajectory]
-    assert len(frames) >= 5
-    estimated = np.array([T_w_o for _, _, T_w_o in object_map.trajectory])
-    cameras = np.array([jump_run.reports[i].T_w_c for i in frames])
-    error = object_pose_error(cameras, estimated, gt_cameras[frames], true_poses[frames])
+    assert len(object_map.trajectory) >= 5
+    error = tracked_pose_error(jump_run, jump_sequence, object_map)
     assert error.translation_rmse_cm < 2.0  # after removing the constant frame offset
     assert error.rotation_rmse_deg < 2.0
 
@@ -620,14 +615,7 @@ def test_object_that_turned_and_rests_is_detected(resting_turn_sequence, memory_
     # without detection by displaced landmarks, which finds the cylinder in other ways
     result = run(resting_turn_sequence, [f"detection.in_place_turn_memory_frames={memory_frames}",
                                          "detection.displaced_share=0"], sequence=sequence)
-    frames = list(result.sequence)
-    cylinder_maps = []
-    for report in result.reports:
-        for object_id in report.objects_created:
-            labels = labels_of(resting_turn_sequence, frames[report.frame_index])
-            given = report.mask == object_id
-            if given.any() and (labels[given] == 2).mean() > 0.5:
-                cylinder_maps.append(report.frame_index)
+    cylinder_maps = frames_creating_maps_of(result, resting_turn_sequence, 2)
     if memory_frames:
         assert cylinder_maps and first_motion <= cylinder_maps[0] <= first_motion + 3
     else:
@@ -655,13 +643,7 @@ def test_object_whose_landmarks_all_went_missing_is_detected(turned_over_its_pla
     first_motion = int(np.flatnonzero(np.linalg.norm(np.diff(rows[:, 1:8], axis=0), axis=1) > 1e-6)[0] + 1)
     sequence = open_sequence(root, max_frames=first_motion + 4)
     result = run(root, [f"detection.displaced_share={displaced_share}"], sequence=sequence)
-    frames = list(result.sequence)
-    cylinder_maps = []
-    for report in result.reports:
-        for object_id in report.objects_created:
-            given = report.mask == object_id
-            if given.any() and (labels_of(root, frames[report.frame_index])[given] == 2).mean() > 0.5:
-                cylinder_maps.append(report.frame_index)
+    cylinder_maps = frames_creating_maps_of(result, root, 2)
     if displaced_share:
         assert cylinder_maps == [first_motion]
     else:
@@ -698,17 +680,28 @@ def test_box_turned_to_unseen_sides_keeps_its_map(sequence_fixture, request):
     assert error.translation_rmse_cm < 2.0 and error.rotation_rmse_deg < 2.0
 
 
-def maps_given_true_object(result, root, true_id):
-    """Ids of the object maps given, in some frame, pixels mostly of true object ``true_id``."""
+def _maps_of_true_object(result, root, true_id, listed: str):
+    """``(frame index, object id)`` of the maps in each report's ``listed`` ids
+    (``objects_tracked`` or ``objects_created``) given pixels mostly of true object ``true_id``."""
     frames = list(result.sequence)
-    found = set()
+    found = []
     for report in result.reports:
         labels = labels_of(root, frames[report.frame_index])
-        for object_id in report.objects_tracked:
+        for object_id in getattr(report, listed):
             given = report.mask == object_id
             if given.any() and (labels[given] == true_id).mean() > 0.5:
-                found.add(object_id)
+                found.append((report.frame_index, object_id))
     return found
+
+
+def maps_given_true_object(result, root, true_id):
+    """Ids of the object maps given, in some frame, pixels mostly of true object ``true_id``."""
+    return {object_id for _, object_id in _maps_of_true_object(result, root, true_id, "objects_tracked")}
+
+
+def frames_creating_maps_of(result, root, true_id):
+    """Frame indices in which a map was created on pixels mostly of true object ``true_id``."""
+    return [frame for frame, _ in _maps_of_true_object(result, root, true_id, "objects_created")]
 
 
 def tracked_pose_error(result, root, object_map):
@@ -741,14 +734,7 @@ def test_motion_with_few_agreeing_outliers_is_confirmed_by_a_recent_frame(few_ou
     # without detection by displaced landmarks, which finds the box in other ways
     result = run(root, [f"detection.in_place_turn_memory_frames={memory_frames}", "detection.displaced_share=0"],
                  sequence=open_sequence(root, max_frames=14))
-    frames = list(result.sequence)
-    box_maps = []
-    for report in result.reports:
-        labels = labels_of(root, frames[report.frame_index])
-        for object_id in report.objects_created:
-            given = report.mask == object_id
-            if given.any() and (labels[given] == 1).mean() > 0.5:
-                box_maps.append(report.frame_index)
+    box_maps = frames_creating_maps_of(result, root, 1)
     if memory_frames:
         assert box_maps and 10 <= box_maps[0] <= 13
     else:

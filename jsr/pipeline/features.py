@@ -165,13 +165,8 @@ def lookup_depth(
     count = len(pixels)
     if count == 0:
         return np.zeros(0), np.zeros(0, dtype=bool)
-    height, width = depth.shape
     radius = int(cfg.depth_window)
-    offsets = np.arange(-radius, radius + 1)
-    u = np.clip(np.rint(pixels[:, 0]).astype(np.int64), 0, width - 1)
-    v = np.clip(np.rint(pixels[:, 1]).astype(np.int64), 0, height - 1)
-    uu = np.clip(u[:, None, None] + offsets[None, None, :], 0, width - 1)
-    vv = np.clip(v[:, None, None] + offsets[None, :, None], 0, height - 1)
+    u, v, uu, vv = _window_pixels(pixels, radius, depth.shape)
     # Border pixels repeat when a window is clipped; acceptable for a robust statistic.
     windows = depth[vv, uu].reshape(count, -1).astype(np.float64)
     size = windows.shape[1]
@@ -220,12 +215,7 @@ def keep_slanted_within_segments(points: PointMeasurements, pixels: np.ndarray, 
     slanted = np.flatnonzero(points.has_depth & ~plain)
     if not len(slanted):
         return 0
-    height, width = segment_labels.shape
-    offsets = np.arange(-int(cfg.depth_window), int(cfg.depth_window) + 1)
-    u = np.clip(np.rint(pixels[slanted, 0]).astype(np.int64), 0, width - 1)
-    v = np.clip(np.rint(pixels[slanted, 1]).astype(np.int64), 0, height - 1)
-    uu = np.clip(u[:, None, None] + offsets[None, None, :], 0, width - 1)
-    vv = np.clip(v[:, None, None] + offsets[None, :, None], 0, height - 1)
+    u, v, uu, vv = _window_pixels(pixels[slanted], int(cfg.depth_window), segment_labels.shape)
     window = segment_labels[vv, uu].reshape(len(slanted), -1)
     own = segment_labels[v, u]
     straddling = slanted[(own < 0) | (window != own[:, None]).any(axis=1)]
@@ -233,6 +223,20 @@ def keep_slanted_within_segments(points: PointMeasurements, pixels: np.ndarray, 
     points.points[straddling] = np.nan
     points.sigma_z[straddling] = 0.0
     return len(straddling)
+
+
+def _window_pixels(pixels: np.ndarray, radius: int, shape: tuple[int, int]
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The rounded pixels ``u``, ``v`` ``(N,)`` of ``(N, 2)`` raw ``pixels`` and the columns
+    ``(N, 1, 2r+1)`` and rows ``(N, 2r+1, 1)`` of their ``(2r+1)^2`` windows (``r = radius``),
+    all clipped to an image of ``shape`` ``(H, W)``: ``image[rows, columns]`` is ``(N, 2r+1, 2r+1)``."""
+    height, width = shape
+    offsets = np.arange(-radius, radius + 1)
+    u = np.clip(np.rint(pixels[:, 0]).astype(np.int64), 0, width - 1)
+    v = np.clip(np.rint(pixels[:, 1]).astype(np.int64), 0, height - 1)
+    columns = np.clip(u[:, None, None] + offsets[None, None, :], 0, width - 1)
+    rows = np.clip(v[:, None, None] + offsets[None, :, None], 0, height - 1)
+    return u, v, columns, rows
 
 
 def _window_planes(windows: np.ndarray, du: np.ndarray, dv: np.ndarray
