@@ -142,6 +142,7 @@ class DetectionConfig:
     min_motion: float = 0.03
     min_motion_degrees: float = 3.0
     displaced_share: float = 0.8
+    displaced_free_space_share: float = 0.5
     where_lost: bool = True
     merge_gap_pixels: int = 2
     min_object_points: int = 15
@@ -156,7 +157,7 @@ class ObjectsConfig:
     segment_completion: bool = True
     grow_segments: bool = True
     grow_violation_share: float = 0.3
-    grow_unmatched: bool = False
+    grow_unmatched: bool = True
     grow_inside_extent: bool = True
     split_mixed_segments: bool = True
     extent_margin: float = 0.03
@@ -320,6 +321,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "features.slanted_max_incidence": (lambda v: 0 <= v < 90, "in [0, 90) degrees (0: off)"),
     "objects.shape_radius_px": (lambda v: v > 0, "positive"),
     "detection.displaced_share": (lambda v: 0 <= v <= 1, "in [0, 1] (0: off)"),
+    "detection.displaced_free_space_share": (lambda v: 0 <= v <= 1, "in [0, 1] (0: off)"),
     "objects.shape_min_fitness": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "objects.shape_max_seen_through": (lambda v: 0 <= v <= 1, "in [0, 1]"),
     "objects.shape_min_constraint": (lambda v: v >= 0, "non-negative"),

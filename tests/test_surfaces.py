@@ -483,3 +483,18 @@ def test_anchors_pin_the_motions_a_surface_leaves_free():
     on_cylinder = cylinder_points[[0, 1, 2]]
     assert pins(cylinder_points, _textured(cylinder_points), on_cylinder)
     assert pins(points, colors, spot)
+
+
+def test_a_refinement_that_loses_fit_and_texture_is_not_kept():
+    """Coloured ICP that slides a right fit away (less of the region on the model, texture
+    lined up worse) is undone; one that improves either is kept."""
+    from jsr.pipeline.surfaces import _kept_refinement, region_model
+
+    camera = _box_camera()
+    points, _ = _cylinder_side(arc_degrees=200.0)
+    seen = _view(points, _textured(points), camera)
+    cylinder, region = build_model([(camera, seen)], VOXEL), region_model(seen, VOXEL)
+    tree = cKDTree(cylinder.points)
+    slid = make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.radians(50.0)), [0.0, 0.0, 0.03]) @ camera
+    np.testing.assert_array_equal(_kept_refinement(region, cylinder, tree, camera, slid, VOXEL), camera)
+    np.testing.assert_array_equal(_kept_refinement(region, cylinder, tree, slid, camera, VOXEL), camera)

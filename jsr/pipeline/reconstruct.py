@@ -44,7 +44,8 @@ from jsr.pipeline.association import (
     sample_colors,
 )
 from jsr.pipeline.classify import ObjectRegistration, classify_measurements, segment_of_planes
-from jsr.pipeline.detection import detect_moving_segments, merge_adjacent_moving_segments, segment_outlier_stats
+from jsr.pipeline.detection import (detect_moving_segments, displaced_landmark_groups, merge_adjacent_moving_segments,
+                                    segment_outlier_stats)
 from jsr.pipeline.objects import (
     ObjectMap,
     ObjectRegistrar,
@@ -103,7 +104,6 @@ SHAPE_SEEN_THROUGH_VOXELS, SHAPE_SEEN_THROUGH_SIGMAS = 3.0, 3.0  # a model point
 SELF_TEXTURE_MIN_OVERLAP = 0.5  # own views compared only where this share of one lies on the others
 SELF_TEXTURE_VIEWS = 6  # an object's latest keyframe samples that measure how its own views agree
 UNMATCHED_FEATURE_FACTOR = 2  # a face whose 3D features hardly match the static map grows into an object from twice min_segment_features of them
-DISPLACED_MIN_FACTOR = 2  # displaced landmarks (no match at all) are weaker evidence than outliers: twice as many needed
 SELF_TEXTURE_MIN = 0.2  # own views agreeing less (an object of one colour): no texture to tell fits apart (measured: kitchen_box120 0.38-0.51, synthetic 0.87-0.9)
 # two frames' rotations fitted to 5-15 points each differ by a few degrees (synth_two seed 3: 3.2)
 TURN_MEMORY_DEGREES_FACTOR = 2
@@ -711,17 +711,20 @@ class Reconstructor:
             # A textured face where the static keyframes saw a surface, whose 3D features hardly
             # match the static map at all: had the keyframes seen this texture there, its
             # features would match their landmarks. They saw another surface within the
-            # free-space margin, the object's own face before it jumped (sample_data with
-            # features.slanted_max_incidence 70, frame 10: the box's second face, 24 3D
-            # features, 2 matched, where its front face had been). Off by default: a static
-            # surface with no match at all also passes when the static registration matched
-            # little in it (synth_jump seed 3 at 320x240, frame 39: a table top, 66 keypoints,
-            # 154 landmarks at its depth, none matched).
+            # free-space margin, the object's own face before it jumped (synth_two seed 4,
+            # frames 11-27: the box's second face, 43 3D features, 2 matched, 51 of its 243
+            # sampled pixels in free space; the box kept 65-76% of its pixels without this
+            # rule, 99% with it). Part of the face must lie in space they saw empty (as many
+            # sampled pixels as free-space detection needs): a static surface the registration
+            # matched little in has none (synth_jump seed 3 at 320x240, frame 39: a grazing
+            # table top, 66 keypoints, 10 with depth, none matched, 255 sampled pixels in
+            # agreement and none in free space).
             three_d = np.bincount(point_segment[measurements.points.has_depth & (point_segment >= 0)],
                                   minlength=len(measurements.segments))
             candidates |= seen_static & (segment_owner == 0) & (static_count == 0) & (
                 three_d >= UNMATCHED_FEATURE_FACTOR * min_features) & (
-                stats.matched <= UNSUPPORTED_STATIC_SHARE * three_d)
+                stats.matched <= UNSUPPORTED_STATIC_SHARE * three_d) & (
+                violations >= self._free_space_min_samples())
         if inside is not None:
             # Inside the object's extent and not shown static by its features: the object's own
             # faces, even without reliable 3D features (seen at a grazing angle).
@@ -880,13 +883,19 @@ class Reconstructor:
         by_free_space = self._free_space_segments(measurements, violations, consistent, inliers)
         by_free_space = self._not_in_place(measurements, static, by_free_space, inliers, report.T_w_c,
                                            keep_unknown=True)
-        by_displacement = self._displaced_landmark_segments(frame, measurements, static, inliers, report.T_w_c)
-        # The in-place veto, but only from as many outlier landmarks as detection by outliers
-        # needs: a turned object's one or two outliers are often found "in place" on its own
-        # new texture (synth_two_sim seed 3), while a static surface whose depth disagrees at
-        # its landmarks (a depth edge, redkitchen300 seed 1: 7 of 10 in place) has many.
-        by_displacement = [segment for segment in by_displacement if not self._mostly_in_place(
-            measurements, static, segment, inliers, report.T_w_c, self.config.detection.min_segment_features)]
+        # The in-place veto, over each group of touching segments and over its outlier and its
+        # displaced landmarks together, but only from as many landmarks as detection by
+        # outliers needs: a turned object's one or two outliers are often found "in place" on
+        # its own new texture (synth_two_sim seed 3), while a static surface whose depth
+        # disagrees at its landmarks (a depth edge, redkitchen300 seed 1: 7 of 10 in place) has
+        # many. Its displaced landmarks count too: a cylinder that moved 8 cm and turned 35
+        # degrees had all 7 outlier landmarks found on look-alikes of its own texture, but 45
+        # displaced ones (synth_two seed 3, frame 19; detected 3 frames later without them).
+        by_displacement = [segment for group, displaced in self._displaced_landmark_groups(
+            frame, measurements, static, inliers, report.T_w_c) if not self._mostly_in_place(
+                measurements, static, group, inliers, report.T_w_c, self.config.detection.min_segment_features,
+                also=displaced)
+            for segment in group]
         moving = sorted(set(by_outliers) | set(by_free_space) | set(by_displacement) | set(where_lost))
         moving = [s for s in moving if assignment.segment_owner[s] == 0]
         if not moving:
@@ -931,19 +940,23 @@ class Reconstructor:
         inside = np.bincount(labels[where & (labels >= 0)], minlength=len(total))
         return [segment for segment in candidates if inside[segment] >= 0.5 * total[segment]]
 
-    def _outliers_in_place(self, measurements: FrameMeasurements, static: StaticRegistration, segment: int,
-                           static_inliers: np.ndarray, T_w_c: np.ndarray) -> tuple[int, int]:
-        """``(found, total)``: of the static landmarks matched as outliers in ``segment``, how
-        many are still where the static map has them. Each is projected with the camera pose
-        and looked for among the frame's keypoints near its projection (guided matching). A
+    def _outliers_in_place(self, measurements: FrameMeasurements, static: StaticRegistration,
+                           segment: int | list[int], static_inliers: np.ndarray, T_w_c: np.ndarray,
+                           also: np.ndarray | None = None) -> tuple[int, int]:
+        """``(found, total)``: of the static landmarks matched as outliers in ``segment`` (one
+        segment or a list of them), together with the static landmark ids ``also``, how many
+        are still where the static map has them. Each is projected with the camera pose and
+        looked for among the frame's keypoints near its projection (guided matching). A
         landmark found there has not moved (its outlier match went to a look-alike, such as the
-        next cabinet door); one on an object that moved, even one that turned in place, is
-        not found: its spot looks different now."""
+        next cabinet door); one on an object that moved, even one that turned in place, is not
+        found: its spot looks different now."""
         matched = static.matched
         point_segment = measurements.segments.segment_of_points(len(measurements.points))
         outlier = ~static_inliers[matched.point_measurements]
-        rows = np.flatnonzero(outlier & (point_segment[matched.point_measurements] == segment))
+        rows = np.flatnonzero(outlier & np.isin(point_segment[matched.point_measurements], segment))
         landmarks = np.unique(matched.point_landmarks[rows])
+        if also is not None:
+            landmarks = np.union1d(landmarks, np.asarray(also, dtype=np.int64))
         if not len(landmarks):
             return 0, 0
         points = measurements.points
@@ -956,7 +969,7 @@ class Reconstructor:
             # (what it was on moved away), not evidence of a surface still in place
             phantom = self._in_free_space(self.static_map.points.positions[landmarks[found[:, 1]]])
             if phantom.any():
-                logger.debug("frame %d: segment %d: %d of the outlier landmarks found in place lie in free space",
+                logger.debug("frame %d: segment %s: %d of the outlier landmarks found in place lie in free space",
                              measurements.frame_index, segment, int(phantom.sum()))
             found = found[~phantom]
         return len(found), len(landmarks)
@@ -989,16 +1002,17 @@ class Reconstructor:
         return [segment for segment in candidates if not self._mostly_in_place(
             measurements, static, segment, static_inliers, T_w_c, 1, unknown=not keep_unknown)]
 
-    def _mostly_in_place(self, measurements: FrameMeasurements, static: StaticRegistration, segment: int,
+    def _mostly_in_place(self, measurements: FrameMeasurements, static: StaticRegistration, segment: int | list[int],
                          static_inliers: np.ndarray, T_w_c: np.ndarray, min_landmarks: int,
-                         unknown: bool = False) -> bool:
-        """Whether at least half of the segment's outlier landmarks are still in place, judged
-        from at least ``min_landmarks`` of them (fewer: ``unknown``)."""
-        found, total = self._outliers_in_place(measurements, static, segment, static_inliers, T_w_c)
+                         unknown: bool = False, also: np.ndarray | None = None) -> bool:
+        """Whether at least half of the segment's outlier landmarks (and of the landmarks
+        ``also``) are still in place, judged from at least ``min_landmarks`` of them (fewer:
+        ``unknown``)."""
+        found, total = self._outliers_in_place(measurements, static, segment, static_inliers, T_w_c, also)
         if total < min_landmarks:
             return unknown
         if found >= 0.5 * total:
-            logger.debug("frame %d: segment %d: %d of %d outlier landmarks are still in place",
+            logger.debug("frame %d: segment %s: %d of %d outlier landmarks are still in place",
                          measurements.frame_index, segment, found, total)
             return True
         return False
@@ -1761,25 +1775,29 @@ class Reconstructor:
         moving &= _little_static_support(measurements, static_inliers)
         return np.flatnonzero(moving).tolist()
 
-    def _displaced_landmark_segments(self, frame: Frame, measurements: FrameMeasurements, static: StaticRegistration,
-                                     static_inliers: np.ndarray, T_w_c: np.ndarray) -> list[int]:
-        """Segments whose static landmarks all went missing at once: an object that turned or
-        jumped so that its features match nothing (no outliers to detect it by), over about
-        where it stood (so that free space says nothing either; synth_two_sim seed 3: a
-        cylinder turned 35 degrees, 2 of its 30 features matched).
+    def _displaced_landmark_groups(self, frame: Frame, measurements: FrameMeasurements, static: StaticRegistration,
+                                   static_inliers: np.ndarray, T_w_c: np.ndarray) -> list[tuple[list[int], np.ndarray]]:
+        """Groups of touching segments whose static landmarks all went missing at once: an
+        object that turned or jumped so that its features match nothing (no outliers to detect
+        it by), over about where it stood (so that free space says nothing either;
+        synth_two_sim seed 3: a cylinder turned 35 degrees, 2 of its 30 features matched).
 
         The static landmarks that were inliers in the previous frame are projected with the
         camera pose ``T_w_c`` (``static_inliers``: ``(N,)`` bool, this frame's point
         measurements that are inliers of ``static``); one is *displaced* when it is no inlier
         now and the depth measured at its projection is off its predicted depth by more than
-        the inlier threshold (its surface is not there). A segment moves when at least
-        DISPLACED_MIN_FACTOR x ``detection.min_segment_features`` of the landmarks projecting
-        into it are displaced, they are at least ``detection.displaced_share`` of those
-        projecting into it with depth, and at most 20% of its 3D features are static inliers
-        (as for free space). A static surface that lost its matches to blur keeps its depth;
-        one that a nearer static surface hides keeps most of its landmarks elsewhere.
+        the inlier threshold (its surface is not there). Segments, alone or with touching
+        ones, with enough of them move (:func:`~jsr.pipeline.detection.displaced_landmark_groups`).
+        A static surface that lost its matches to blur keeps its depth; one that a nearer
+        static surface hides keeps most of its landmarks elsewhere.
         Measured (share 0.8): no segment on redkitchen300 or bonn_crowd200, one static
-        segment of kitchen_box120 with 6 displaced landmarks, objects with 10-37."""
+        segment of kitchen_box120 with 6 displaced landmarks, objects with 10-37 (one segment
+        each). Stop 20: synth_two seed 4's cylinder, jumped, lay in two segments with 6 and 7
+        displaced landmarks; synth_two_sim seed 4's, in one segment with 5 of 5 displaced and
+        56% of its pixels in free space (where free-space detection wants 60%).
+
+        Returns ``(group, landmark ids)`` pairs: each group's segments and the static landmarks
+        displaced in it."""
         config = self.config.detection
         previous = self._previous_static_inliers
         if config.displaced_share <= 0 or previous is None or not len(previous):
@@ -1800,18 +1818,18 @@ class Reconstructor:
         displaced = with_depth & ~kept & (np.abs(measured - z) > threshold)
         projecting = np.bincount(segment[with_depth], minlength=len(segments))
         displaced_count = np.bincount(segment[displaced], minlength=len(segments))
-        moving = (displaced_count >= DISPLACED_MIN_FACTOR * config.min_segment_features) \
-            & (displaced_count >= config.displaced_share * projecting) \
-            & _little_static_support(measurements, static_inliers)
-        found = np.flatnonzero(moving).tolist()
-        if found:
-            # seen through: the surface measured behind them (the background an object left,
-            # or an object that turned away over its old place)
-            seen_through = np.bincount(segment[displaced & (measured > z)], minlength=len(segments))
+        violations, consistent = self._free_space(frame, measurements)
+        groups = displaced_landmark_groups(segments, displaced_count, projecting,
+                                           _little_static_support(measurements, static_inliers), violations,
+                                           consistent, self._free_space_min_samples(), config)
+        # seen through: the surface measured behind them (the background an object left, or
+        # an object that turned away over its old place)
+        seen_through = np.bincount(segment[displaced & (measured > z)], minlength=len(segments))
+        for group in groups:
             logger.debug("frame %d: segments %s: %s of %s previous static inliers displaced (%s seen through)",
-                         measurements.frame_index, found, displaced_count[found].tolist(), projecting[found].tolist(),
-                         seen_through[found].tolist())
-        return found
+                         measurements.frame_index, group, displaced_count[group].tolist(),
+                         projecting[group].tolist(), seen_through[group].tolist())
+        return [(group, landmarks[displaced & np.isin(segment, group)]) for group in groups]
 
     def _retire_static_landmarks(self, static: StaticRegistration, assignment: FrameAssignment) -> None:
         """Static-map hygiene: landmarks the static map took from an object (before it moved)
