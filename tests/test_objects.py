@@ -37,6 +37,16 @@ def jump_sequence(tmp_path_factory):
     return root
 
 
+def motion_frames(root, true_id: int) -> np.ndarray:
+    """The frames in which true object ``true_id`` stands somewhere else than in the one before."""
+    rows = np.loadtxt(root / "objects" / f"object_{true_id}.txt")
+    return np.flatnonzero(np.linalg.norm(np.diff(rows[:, 1:8], axis=0), axis=1) > 1e-6) + 1
+
+
+def first_motion_frame(root, true_id: int) -> int:
+    return int(motion_frames(root, true_id)[0])
+
+
 def true_object_poses(root):
     """``(F, 4, 4)`` true T_w_o of object 1 per frame, and the first frame it moved in."""
     rows = np.loadtxt(root / "objects" / "object_1.txt")
@@ -45,12 +55,18 @@ def true_object_poses(root):
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
     poses[:, :3, :3] = Rotation.from_quat(rows[:, 4:8]).as_matrix()
     poses[:, :3, 3] = rows[:, 1:4]
-    moved = np.flatnonzero(np.linalg.norm(np.diff(rows[:, 1:8], axis=0), axis=1) > 1e-6) + 1
-    return poses, int(moved[0])
+    return poses, first_motion_frame(root, 1)
 
 
 def labels_of(root, frame):
     return cv2.imread(str(root / "labels" / f"{frame.name}.png"), cv2.IMREAD_UNCHANGED)
+
+
+def object_recalls(result, root, true_id: int, reports) -> list[float]:
+    """For each of ``reports``, the share of true object ``true_id``'s pixels given to some object."""
+    frames = list(result.sequence)
+    return [float((report.mask[labels_of(root, frames[report.frame_index]) == true_id] > 0).mean())
+            for report in reports]
 
 
 def run(root, overrides=(), init_object_mask=None, sequence=None):
@@ -594,12 +610,6 @@ def test_moving_region_too_poor_to_start_gets_detail_boxes(jump_sequence):
     reconstructor.close()
 
 
-def first_motion_frame(root, true_id: int) -> int:
-    """The first frame in which true object ``true_id`` stands somewhere else than in the one before."""
-    rows = np.loadtxt(root / "objects" / f"object_{true_id}.txt")
-    return int(np.flatnonzero(np.linalg.norm(np.diff(rows[:, 1:8], axis=0), axis=1) > 1e-6)[0] + 1)
-
-
 @pytest.fixture(scope="module")
 def resting_turn_sequence(tmp_path_factory):
     """Seed 3 of two jumping objects (60 frames; the tests use the first 23 or 50): at frame 19 the
@@ -893,9 +903,7 @@ def test_object_back_at_its_old_place_is_detected(returning_sequence):
     """The in-place test does not count landmarks lying in space the static keyframes saw
     empty (phantoms of the box's first place): the box is found again at once after its
     jump at frame 19, and tracked from then on."""
-    rows = np.loadtxt(returning_sequence / "objects" / "object_1.txt")
-    jumps = np.flatnonzero(np.linalg.norm(np.diff(rows[:, 1:8], axis=0), axis=1) > 1e-6) + 1
-    second_jump = int(jumps[1])
+    second_jump = int(motion_frames(returning_sequence, 1)[1])
     sequence = open_sequence(returning_sequence, max_frames=second_jump + 4)
     result = run(returning_sequence, sequence=sequence)
     frames = list(result.sequence)
@@ -1051,12 +1059,7 @@ def test_face_that_moved_in_is_grown_into_its_object(new_side_jump_sequence, vio
     root = new_side_jump_sequence
     result = run(root, [f"objects.grow_violation_share={violation_share}", "objects.grow_unmatched=false"],
                  sequence=open_sequence(root, max_frames=14))
-    frames = list(result.sequence)
-    recalls = []
-    for report in result.reports[10:]:
-        box = labels_of(root, frames[report.frame_index]) == 1
-        given = report.mask[box]
-        recalls.append((given > 0).mean())
+    recalls = object_recalls(result, root, 1, result.reports[10:])
     if violation_share:
         assert min(recalls) > 0.9, recalls
     else:
@@ -1080,9 +1083,7 @@ def test_grazing_face_where_the_old_face_was_joins_its_object(sample_like_sequen
     second face)."""
     root = sample_like_sequence
     result = run(root, ["features.slanted_max_incidence=70"], sequence=open_sequence(root, max_frames=20))
-    frames = list(result.sequence)
-    recalls = [(report.mask[labels_of(root, frames[report.frame_index]) == 1] > 0).mean()
-               for report in result.reports[10:17]]
+    recalls = object_recalls(result, root, 1, result.reports[10:17])
     assert np.median(recalls) > 0.9, recalls
     assert [report.objects_tracked for report in result.reports[10:]] == [[1]] * 10
 
@@ -1095,9 +1096,7 @@ def test_face_whose_features_match_nothing_static_is_grown(new_side_jump_sequenc
     root = new_side_jump_sequence
     result = run(root, ["objects.grow_violation_share=0", f"objects.grow_unmatched={str(unmatched).lower()}"],
                  sequence=open_sequence(root, max_frames=14))
-    frames = list(result.sequence)
-    recalls = [(report.mask[labels_of(root, frames[report.frame_index]) == 1] > 0).mean()
-               for report in result.reports[11:]]
+    recalls = object_recalls(result, root, 1, result.reports[11:])
     if unmatched:
         assert min(recalls) > 0.9, recalls
     else:

@@ -891,11 +891,11 @@ class Reconstructor:
         # many. Its displaced landmarks count too: a cylinder that moved 8 cm and turned 35
         # degrees had all 7 outlier landmarks found on look-alikes of its own texture, but 45
         # displaced ones (synth_two seed 3, frame 19; detected 3 frames later without them).
-        by_displacement = [segment for group, displaced in self._displaced_landmark_groups(
-            frame, measurements, static, inliers, report.T_w_c) if not self._mostly_in_place(
-                measurements, static, group, inliers, report.T_w_c, self.config.detection.min_segment_features,
-                also=displaced)
-            for segment in group]
+        by_displacement = []
+        for group, displaced in self._displaced_landmark_groups(frame, measurements, static, inliers, report.T_w_c):
+            if not self._mostly_in_place(measurements, static, group, inliers, report.T_w_c,
+                                         self.config.detection.min_segment_features, also=displaced):
+                by_displacement.extend(group)
         moving = sorted(set(by_outliers) | set(by_free_space) | set(by_displacement) | set(where_lost))
         moving = [s for s in moving if assignment.segment_owner[s] == 0]
         if not moving:
