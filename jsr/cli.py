@@ -18,6 +18,7 @@ from typing import Callable, List, Optional
 
 import typer
 from rich.console import Console
+from rich.table import Column
 from rich.logging import RichHandler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
@@ -108,17 +109,16 @@ def _main_options(
 
 
 def _progress(quiet: bool, unit: str = "frames") -> Progress:
-    return Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.fields[rate]}"),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        console=console,
-        disable=quiet,
-        transient=False,
-    )
+    """Rich progress on stderr; the rate and map counts come last and wrap rather than being cut
+    in a narrow window. Not on a terminal (a batch job's log) rich draws only the final state:
+    the bar and the times are left out there."""
+    counts = TextColumn("{task.fields[rate]}", table_column=Column(no_wrap=False, overflow="fold"))
+    if console.is_terminal:
+        columns = [TextColumn("[bold]{task.description}"), BarColumn(bar_width=20), MofNCompleteColumn(),
+                   TimeElapsedColumn(), TimeRemainingColumn(), counts]
+    else:
+        columns = [TextColumn("{task.description}"), MofNCompleteColumn(), counts]
+    return Progress(*columns, console=console, disable=quiet, transient=False)
 
 
 def _print_json(data: dict) -> None:

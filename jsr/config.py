@@ -170,6 +170,7 @@ class ObjectsConfig:
     vacated_cluster_radius: float = 0.15
     vacated_window_px: int = 10
     grow_keyframe_ratio: float = 1.0
+    resting_max_extra_cost: float = 16.8
     reidentify: bool = True
     shape_reidentify: bool = True
     shape_voxel: float = 0.01
@@ -326,6 +327,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "objects.shape_max_seen_through": (lambda v: 0 <= v <= 1, "in [0, 1]"),
     "objects.shape_min_constraint": (lambda v: v >= 0, "non-negative"),
     "objects.shape_min_texture_ratio": (lambda v: 0 <= v <= 1, "in [0, 1] (0: only fits that landmarks confirm)"),
+    "objects.resting_max_extra_cost": (lambda v: v >= 0, "at least 0 (0: off)"),
     "objects.merge_min_shared_inliers": (lambda v: v >= 1, "at least 1"),
     "objects.map_merge_min_inliers": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.free_space_min_pixels": (lambda v: v >= 1, "at least 1"),

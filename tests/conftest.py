@@ -6,6 +6,7 @@ and are skipped when that folder is absent.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import pytest
@@ -21,6 +22,18 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "real" in item.keywords:
             item.add_marker(skip_real)
+
+
+@pytest.fixture(autouse=True)
+def library_logging_restored():
+    """The CLI configures the ``jsr`` logger (its own handler, a level, no propagation) when a
+    test runs a command; each test gets it back as it was, so ``caplog`` sees library logs."""
+    library_logger = logging.getLogger("jsr")
+    state = list(library_logger.handlers), library_logger.level, library_logger.propagate
+    yield
+    library_logger.handlers[:] = state[0]
+    library_logger.setLevel(state[1])
+    library_logger.propagate = state[2]
 
 
 @pytest.fixture(scope="session")

@@ -52,6 +52,15 @@ def test_reconstruct_writes_results(tmp_path, synth_sequence):
     assert summary["status"] == "complete" and summary["frames_processed"] == 6
 
 
+def test_progress_in_a_log_keeps_its_counts(tmp_path, synth_sequence):
+    """Not on a terminal, the progress line's counts wrap within 80 columns rather than being cut."""
+    result = run("reconstruct", synth_sequence, "--out", tmp_path / "out", "--max-frames", "4")
+    assert result.exit_code == 0, result.output
+    progress = result.output[:result.output.index("jsr reconstruct:")]
+    assert "…" not in progress
+    assert "4/4" in progress and "fps" in progress and " seen)" in progress
+
+
 def make_bad_input(tmp_path, problem):
     seq = write_tiny_tum(tmp_path / "seq")
     args = ["reconstruct", seq, "--out", tmp_path / "out"]

@@ -10,6 +10,7 @@ import pytest
 
 from jsr.config import load_config
 from jsr.evaluate import object_pose_error
+from jsr.geometry import rotation_angle
 from jsr.io.dataset import open_sequence
 from jsr.pipeline.objects import (
     DepthView,
@@ -1101,3 +1102,34 @@ def test_face_whose_features_match_nothing_static_is_grown(new_side_jump_sequenc
         assert min(recalls) > 0.9, recalls
     else:
         assert max(recalls) < 0.7, recalls
+
+
+@pytest.fixture(scope="module")
+def resting_cylinder_sequence(tmp_path_factory):
+    """Seed 5 of two jumping objects (60 frames; the test uses the first 35): the cylinder
+    (object 2) jumps at frame 18 and rests until frame 35. Its texture alone fixes its turn
+    about its axis, and registered anew each frame it wandered by up to 2.5 degrees."""
+    root = tmp_path_factory.mktemp("objects") / "resting_cylinder"
+    generate_sequence(root, full_size_options(objects=2, seed=5))
+    return root
+
+
+@pytest.mark.parametrize("max_extra_cost", [0.0, 16.8])
+def test_resting_object_keeps_its_world_pose(resting_cylinder_sequence, max_extra_cost):
+    """objects.resting_max_extra_cost: while the cylinder rests, its world pose stays where it
+    was (within 0.5 degrees and 5 mm over frames 20-34); registered anew each frame
+    (0: off), it wanders by more than a degree."""
+    root = resting_cylinder_sequence
+    assert motion_frames(root, 2).tolist()[:2] == [18, 35]
+    result = run(root, [f"objects.resting_max_extra_cost={max_extra_cost}"],
+                 sequence=open_sequence(root, max_frames=35))
+    (cylinder_id,) = maps_given_true_object(result, root, 2)
+    (cylinder,) = [m for m in result.reconstructor.object_maps if m.object_id == cylinder_id]
+    resting = [T_w_o for index, _, T_w_o in cylinder.trajectory if 20 <= index <= 34]
+    assert len(resting) == 15
+    turns = [rotation_angle(np.linalg.inv(resting[0])[:3, :3] @ T_w_o[:3, :3]) for T_w_o in resting]
+    shifts = [np.linalg.norm(T_w_o[:3, 3] - resting[0][:3, 3]) for T_w_o in resting]
+    if max_extra_cost > 0:
+        assert np.degrees(max(turns)) < 0.5 and max(shifts) < 0.005
+    else:
+        assert np.degrees(max(turns)) > 1.0

@@ -1,7 +1,10 @@
 """Running a whole sequence: the results folder, also after an interruption."""
 
 import json
+import logging
+import shutil
 
+import cv2
 import numpy as np
 import pytest
 
@@ -87,3 +90,18 @@ def test_ctrl_c_while_saving_does_not_cut_the_save(synth_sequence, tmp_path, mon
     assert summary["status"] == "interrupted" and summary["frames_processed"] == 3
     assert (tmp_path / "static" / "landmarks.ply").is_file()
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+
+def test_frame_without_valid_depth_mid_sequence_is_reported(synth_sequence, tmp_path, caplog):
+    root = tmp_path / "sequence"
+    shutil.copytree(synth_sequence, root)
+    sequence = open_sequence(root, max_frames=6)
+    blank = sequence[3].depth_path
+    cv2.imwrite(str(blank), np.zeros_like(cv2.imread(str(blank), cv2.IMREAD_UNCHANGED)))
+    with caplog.at_level(logging.WARNING, logger="jsr"):
+        summary = run_reconstruction(open_sequence(root, max_frames=6), load_config(), tmp_path / "out",
+                                     dense_models=False)
+    assert summary["status"] == "complete" and summary["frames_processed"] == 6
+    warnings = [r.getMessage() for r in caplog.records if "no valid depth" in r.getMessage()]
+    assert warnings == [f"frame 3: depth image {blank.name} has no valid depth; check it (the frame can only be "
+                        "placed from 2D matches)"]

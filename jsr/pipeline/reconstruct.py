@@ -65,8 +65,8 @@ from jsr.pipeline.objects import (
     unsupported_segments,
     UNSUPPORTED_STATIC_SHARE,
 )
-from jsr.pipeline.registration import (RegistrationResult, depth_thresholds, point3d_thresholds, register,
-                                      surface_pose_result)
+from jsr.pipeline.registration import (RegistrationResult, depth_thresholds, evaluate_pose, point3d_thresholds,
+                                      pose_cost, register, surface_pose_result)
 from jsr.pipeline.surfaces import (
     Alignment,
     SurfaceModel,
@@ -307,6 +307,10 @@ class Reconstructor:
     def process(self, frame: Frame) -> FrameReport:
         """Process one frame; never raises for a frame that simply cannot be registered."""
         started = time.perf_counter()
+        if not np.any(frame.depth > 0):
+            # 2D matches may still place the camera, but nothing of the frame enters a map in 3D
+            logger.warning("frame %d: depth image %s has no valid depth; check it (the frame can only be placed "
+                           "from 2D matches)", frame.index, frame.depth_path.name)
         measurements = self.frontend.process(frame, self._detail_boxes(frame.index))
         # Bundle adjustments started after earlier keyframes ran while the front-end worked;
         # they are applied here, always at this point, so runs stay reproducible.
@@ -540,6 +544,8 @@ class Reconstructor:
                 predicted = np.linalg.inv(object_map.last_T_w_o) @ report.T_w_c
             outcome = self.registrar.register_object(measurements, vlads, object_map, self.segment_index, predicted,
                                                      skip)
+            if report.tracked and object_map.last_T_w_o is not None and outcome.success:
+                outcome = self._kept_at_rest(outcome, predicted, measurements.frame_index)
             outcomes.append(outcome)
             logger.debug(
                 "frame %d: object %d frame-based %s (%d matches, %d inliers), segment-based %s (%d pairs)",
@@ -551,6 +557,35 @@ class Reconstructor:
                     logger.info("frame %d: object %d not found", measurements.frame_index, object_map.object_id)
                 object_map.lost = True
         return outcomes
+
+    def _kept_at_rest(self, outcome: ObjectTrackingResult, resting_T_o_c: np.ndarray,
+                      frame_index: int) -> ObjectTrackingResult:
+        """The object's registration, at the pose where it last was in the world when that pose
+        explains the registration's inliers as well as noise allows (``objects.resting_max_extra_cost``).
+
+        ``resting_T_o_c`` (4x4, camera to object) is the last world pose seen from this camera.
+        Why: a resting object registered anew each frame wanders within the noise (a cylinder
+        about its axis by degrees over a sequence), and every keyframe taken at a wandered pose
+        makes its map agree with the wandering. The test is a likelihood ratio: the cost of the
+        resting pose minus that of the registered one is chi-square with 6 degrees of freedom
+        when the object has not moved.
+        """
+        bound = self.config.objects.resting_max_extra_cost
+        if bound <= 0:
+            return outcome
+        _, registered = outcome.best
+        ransac, noise = self.config.ransac, self.config.noise
+        extra = (pose_cost(resting_T_o_c, registered, ransac, noise)
+                 - pose_cost(registered.transformation, registered, ransac, noise))
+        resting = evaluate_pose(resting_T_o_c, registered.correspondences, ransac, noise)
+        if extra > bound or not resting.success:
+            logger.debug("frame %d: object %d moved (extra cost %.1f of its last world pose, %d of %d inliers)",
+                         frame_index, outcome.object_map.object_id, extra, resting.num_inliers, registered.num_inliers)
+            return outcome
+        logger.debug("frame %d: object %d at rest (extra cost %.1f)", frame_index, outcome.object_map.object_id, extra)
+        if outcome.segment_success:
+            return dataclasses.replace(outcome, segment_result=resting)
+        return dataclasses.replace(outcome, frame_result=resting)
 
     def _merge_duplicates(self, measurements: FrameMeasurements,
                           outcomes: list[ObjectTrackingResult]) -> list[ObjectTrackingResult]:

@@ -849,6 +849,34 @@ def evaluate_pose(
     return _result(problem, corr, ransac_cfg, transform, masks, 0, "", started)
 
 
+def pose_cost(transform: np.ndarray, result: RegistrationResult, ransac_cfg: RansacConfig,
+              noise_cfg: NoiseConfig) -> float:
+    """Sum of squared residuals, in noise sigmas, of the inliers of ``result`` under
+    ``transform`` (``T_map_cam``), each capped at the inlier threshold.
+
+    A measurement's sigma is the inlier threshold over ``noise.inlier_sigmas`` (3D and 2D
+    points: the depth noise at their depth; planes: the angle and offset thresholds); a
+    residual also carries the noise of the landmark it is matched to, taken as large, so
+    its sigma is that times sqrt(2). Under this model the cost of the true pose exceeds that
+    of the least-squares pose by a chi-square variable with 6 degrees of freedom, whatever
+    the number of inliers.
+    """
+    corr = result.correspondences
+    if corr is None:
+        return 0.0
+    transform = np.asarray(transform, dtype=float)
+    sigmas = noise_cfg.inlier_sigmas
+    mask3, mask2, mask_planes = result.inliers_point3d, result.inliers_point2d, result.inliers_plane
+    terms = [(point3d_residuals(transform, corr)[mask3] / point3d_thresholds(corr, noise_cfg)[mask3])]
+    distance, depth, _ = point2d_residuals(transform, corr)
+    terms.append(distance[mask2] / depth_thresholds(np.maximum(depth[mask2], 1e-6), noise_cfg))
+    angle, offset = plane_residuals(transform, corr)
+    terms.append(angle[mask_planes] / np.deg2rad(ransac_cfg.plane_inlier_angle_degrees))
+    terms.append(offset[mask_planes] / ransac_cfg.plane_inlier_distance)
+    in_thresholds = np.minimum(np.concatenate(terms), 1.0)
+    return float((in_thresholds**2).sum() * sigmas**2 / 2.0)
+
+
 def surface_pose_result(transform: np.ndarray, corr: Correspondences, ransac_cfg: RansacConfig,
                         noise_cfg: NoiseConfig, min_links: int) -> RegistrationResult:
     """A successful result at a pose that a surface alignment alone decided (shape-based
