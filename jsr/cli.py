@@ -18,10 +18,9 @@ from typing import Callable, List, Optional
 
 import typer
 from rich.console import Console
-from rich.table import Column
 from rich.logging import RichHandler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-from rich.table import Table
+from rich.table import Column, Table
 
 from jsr import __version__
 from jsr.errors import JsrError

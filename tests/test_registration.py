@@ -432,21 +432,22 @@ def test_image_space_refinement_reaches_the_huber_minimum(seed: int) -> None:
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_pose_cost_tells_noise_from_motion(seed: int) -> None:
-    """The resting test of object tracking: the true pose costs little more than the registered
-    one (a chi-square with 6 degrees of freedom, 99% below 16.8); a pose 2 cm or 1 degree off
-    costs far more; a wildly wrong pose costs each inlier at most its capped share."""
+    """The resting test of object tracking (objects.resting_max_extra_cost = 16.8): the true
+    pose costs little more than the registered one (at most 3 here, below the chi-square
+    bound the noise model would give); a pose 5 mm or 0.3 degrees off costs over twice the
+    bound; a wildly wrong pose costs each inlier its capped share."""
     corr, truth, _ = _scene(seed, n3d=150, n2d=50, n_planes=3, outlier_ratio=0.3)
     result = register(corr, RANSAC, NOISE, np.random.default_rng(seed))
     assert result.success
     registered = registration.pose_cost(result.transformation, result, RANSAC, NOISE)
     assert 0.0 <= registered
-    assert registration.pose_cost(truth, result, RANSAC, NOISE) - registered < 16.8
+    assert registration.pose_cost(truth, result, RANSAC, NOISE) - registered < 3.0
     shifted = truth.copy()
-    shifted[:3, 3] += [0.02, 0.0, 0.0]
+    shifted[:3, 3] += [0.005, 0.0, 0.0]
     turned = truth.copy()
-    turned[:3, :3] = truth[:3, :3] @ Rotation.from_rotvec([0.0, np.radians(1.0), 0.0]).as_matrix()
+    turned[:3, :3] = truth[:3, :3] @ Rotation.from_rotvec([0.0, np.radians(0.3), 0.0]).as_matrix()
     for moved in (shifted, turned):
-        assert registration.pose_cost(moved, result, RANSAC, NOISE) - registered > 4 * 16.8
+        assert registration.pose_cost(moved, result, RANSAC, NOISE) - registered > 2 * 16.8
     far = _pose(np.random.default_rng(seed + 100))
     far[:3, 3] += 5.0
     capped_terms = result.num_inliers + int(result.inliers_plane.sum())  # a plane: normal and offset

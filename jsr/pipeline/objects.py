@@ -56,6 +56,9 @@ class ObjectMap(Map):
         self.segment_landmarks: dict[tuple[int, int], np.ndarray] = {}
         self.last_T_o_c: np.ndarray | None = None  # camera in the object frame, last tracked frame
         self.last_T_w_o: np.ndarray | None = None  # object in the world, last frame tracked with the camera
+        # last_T_w_o came from registered matches, not from a surface alignment alone (a few
+        # degrees off): a pose the object may be kept at while it rests
+        self.last_pose_registered = True
         self.lost = False  # not tracked in the previous frame: relocalise against the whole map
         self.last_tracked_frame = created_at_frame  # the latest frame it was tracked in (camera tracked or not)
         self.trajectory: list[tuple[int, float, np.ndarray]] = []
@@ -79,6 +82,7 @@ class ObjectTrackingResult:
     segment_result: RegistrationResult | None = None
     seed_segments: list[int] = field(default_factory=list)
     segment_pairs_tried: int = 0
+    pose_from_surface: bool = False  # re-identified by a surface alignment alone
 
     @property
     def frame_success(self) -> bool:

@@ -544,7 +544,8 @@ class Reconstructor:
                 predicted = np.linalg.inv(object_map.last_T_w_o) @ report.T_w_c
             outcome = self.registrar.register_object(measurements, vlads, object_map, self.segment_index, predicted,
                                                      skip)
-            if report.tracked and object_map.last_T_w_o is not None and outcome.success:
+            if report.tracked and object_map.last_T_w_o is not None and object_map.last_pose_registered \
+                    and outcome.success:
                 outcome = self._kept_at_rest(outcome, predicted, measurements.frame_index)
             outcomes.append(outcome)
             logger.debug(
@@ -560,15 +561,14 @@ class Reconstructor:
 
     def _kept_at_rest(self, outcome: ObjectTrackingResult, resting_T_o_c: np.ndarray,
                       frame_index: int) -> ObjectTrackingResult:
-        """The object's registration, at the pose where it last was in the world when that pose
-        explains the registration's inliers as well as noise allows (``objects.resting_max_extra_cost``).
+        """``outcome`` with its registration replaced by one at ``resting_T_o_c`` (4x4, camera to
+        object map frame: the object's last world pose seen from this camera) when that pose
+        explains the registration's inliers nearly as well as the registered pose: its
+        :func:`pose_cost` is at most ``objects.resting_max_extra_cost`` higher. Else ``outcome``.
 
-        ``resting_T_o_c`` (4x4, camera to object) is the last world pose seen from this camera.
         Why: a resting object registered anew each frame wanders within the noise (a cylinder
         about its axis by degrees over a sequence), and every keyframe taken at a wandered pose
-        makes its map agree with the wandering. The test is a likelihood ratio: the cost of the
-        resting pose minus that of the registered one is chi-square with 6 degrees of freedom
-        when the object has not moved.
+        makes its map agree with the wandering.
         """
         bound = self.config.objects.resting_max_extra_cost
         if bound <= 0:
@@ -577,12 +577,18 @@ class Reconstructor:
         ransac, noise = self.config.ransac, self.config.noise
         extra = (pose_cost(resting_T_o_c, registered, ransac, noise)
                  - pose_cost(registered.transformation, registered, ransac, noise))
-        resting = evaluate_pose(resting_T_o_c, registered.correspondences, ransac, noise)
-        if extra > bound or not resting.success:
-            logger.debug("frame %d: object %d moved (extra cost %.1f of its last world pose, %d of %d inliers)",
-                         frame_index, outcome.object_map.object_id, extra, resting.num_inliers, registered.num_inliers)
+        object_id = outcome.object_map.object_id
+        if extra > bound:
+            logger.debug("frame %d: object %d moved (its last world pose costs %.1f more)", frame_index, object_id,
+                         extra)
             return outcome
-        logger.debug("frame %d: object %d at rest (extra cost %.1f)", frame_index, outcome.object_map.object_id, extra)
+        resting = evaluate_pose(resting_T_o_c, registered.correspondences, ransac, noise)
+        if not resting.success:
+            logger.debug("frame %d: object %d moved (its last world pose: %s)", frame_index, object_id,
+                         resting.reason)
+            return outcome
+        logger.debug("frame %d: object %d at rest (its last world pose costs %.1f more)", frame_index, object_id,
+                     extra)
         if outcome.segment_success:
             return dataclasses.replace(outcome, segment_result=resting)
         return dataclasses.replace(outcome, frame_result=resting)
@@ -657,6 +663,7 @@ class Reconstructor:
             # the source saw the object last: the merged map continues from there
             target.last_T_o_c = T_target_source @ source.last_T_o_c
             target.last_T_w_o = None if source.last_T_w_o is None else source.last_T_w_o @ np.linalg.inv(T_target_source)
+            target.last_pose_registered = source.last_pose_registered
             target.lost = source.lost
         self.object_maps.remove(source)
         self._reindex_segments(target)
@@ -1369,6 +1376,7 @@ class Reconstructor:
                         "residual %.3f)", measurements.frame_index, group, object_map.object_id, alignment.fitness,
                         alignment.color_residual)
             self._claim_region(measurements, group, outcomes[object_map.object_id], matched, result, assignment)
+            outcomes[object_map.object_id].pose_from_surface = True
             return True
         if best is None:
             return False
@@ -1973,6 +1981,7 @@ class Reconstructor:
         if report.tracked:
             T_w_o = report.T_w_c @ np.linalg.inv(T_o_c)
             object_map.last_T_w_o = T_w_o
+            object_map.last_pose_registered = not outcome.pose_from_surface
             object_map.trajectory.append((frame.index, frame.timestamp, T_w_o))
         points, planes = measurements.points, measurements.planes
         own_points = np.flatnonzero(assignment.point_owner == object_map.object_id)

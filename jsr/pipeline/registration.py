@@ -851,30 +851,33 @@ def evaluate_pose(
 
 def pose_cost(transform: np.ndarray, result: RegistrationResult, ransac_cfg: RansacConfig,
               noise_cfg: NoiseConfig) -> float:
-    """Sum of squared residuals, in noise sigmas, of the inliers of ``result`` under
-    ``transform`` (``T_map_cam``), each capped at the inlier threshold.
+    """How badly ``transform`` (``T_map_cam``, 4x4) explains the inliers of ``result``: the sum
+    over them of squared residuals in noise sigmas, each residual capped at its inlier
+    threshold (a pair that ``transform`` makes an outlier costs the most a pair can).
 
-    A measurement's sigma is the inlier threshold over ``noise.inlier_sigmas`` (3D and 2D
-    points: the depth noise at their depth; planes: the angle and offset thresholds); a
-    residual also carries the noise of the landmark it is matched to, taken as large, so
-    its sigma is that times sqrt(2). Under this model the cost of the true pose exceeds that
-    of the least-squares pose by a chi-square variable with 6 degrees of freedom, whatever
-    the number of inliers.
+    A residual's sigma is its inlier threshold over ``noise.inlier_sigmas`` (3D and 2D points:
+    the axial depth noise at their depth, at least ``noise.min_inlier_threshold`` over it;
+    planes: the angle and offset thresholds), times sqrt(2): the landmark is about as noisy as
+    the measurement. Were residuals Gaussian with these sigmas, the cost of the true pose would
+    exceed that of the least-squares pose by a chi-square with 6 degrees of freedom (99% below
+    16.8). They are smaller (the sigmas are the axial depth noise, and most of a residual is
+    lateral): on seeded scenes of points 0.8-4 m away the true pose costs 0.3-1.4 more, and a
+    pose 5 mm off 50-70 more.
     """
     corr = result.correspondences
     if corr is None:
-        return 0.0
+        raise ValueError("pose_cost needs a result that carries its correspondences")
     transform = np.asarray(transform, dtype=float)
-    sigmas = noise_cfg.inlier_sigmas
     mask3, mask2, mask_planes = result.inliers_point3d, result.inliers_point2d, result.inliers_plane
     terms = [(point3d_residuals(transform, corr)[mask3] / point3d_thresholds(corr, noise_cfg)[mask3])]
-    distance, depth, _ = point2d_residuals(transform, corr)
-    terms.append(distance[mask2] / depth_thresholds(np.maximum(depth[mask2], 1e-6), noise_cfg))
+    distance, depth, along = point2d_residuals(transform, corr)
+    in_front = (along[mask2] > 0) & (depth[mask2] > 0)
+    terms.append(np.where(in_front, distance[mask2] / depth_thresholds(np.abs(depth[mask2]), noise_cfg), 1.0))
     angle, offset = plane_residuals(transform, corr)
     terms.append(angle[mask_planes] / np.deg2rad(ransac_cfg.plane_inlier_angle_degrees))
     terms.append(offset[mask_planes] / ransac_cfg.plane_inlier_distance)
     in_thresholds = np.minimum(np.concatenate(terms), 1.0)
-    return float((in_thresholds**2).sum() * sigmas**2 / 2.0)
+    return float((in_thresholds**2).sum() * noise_cfg.inlier_sigmas**2 / 2.0)
 
 
 def surface_pose_result(transform: np.ndarray, corr: Correspondences, ransac_cfg: RansacConfig,
