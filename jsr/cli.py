@@ -107,7 +107,7 @@ def _main_options(
     """Joint reconstruction of a static scene and rigidly moving objects from RGB-D sequences."""
 
 
-def _progress(quiet: bool, unit: str = "frames") -> Progress:
+def _progress(quiet: bool) -> Progress:
     """Rich progress on stderr; the rate and map counts come last and wrap rather than being cut
     in a narrow window. Not on a terminal (a batch job's log) rich draws only the final state:
     the bar and the times are left out there."""
