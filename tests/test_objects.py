@@ -1111,7 +1111,7 @@ def test_face_whose_features_match_nothing_static_is_grown(new_side_jump_sequenc
 def resting_cylinder_sequence(tmp_path_factory):
     """Seed 5 of two jumping objects (60 frames; the test uses the first 35): the cylinder
     (object 2) jumps at frame 18 and rests until frame 35. Its texture alone fixes its turn
-    about its axis, and registered anew each frame it wandered by up to 2.5 degrees."""
+    about its axis, and registered anew each frame it wandered by up to 2.6 degrees."""
     root = tmp_path_factory.mktemp("objects") / "resting_cylinder"
     generate_sequence(root, full_size_options(objects=2, seed=5))
     return root

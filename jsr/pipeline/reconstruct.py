@@ -539,14 +539,14 @@ class Reconstructor:
         outcomes = []
         for object_map in self.object_maps:
             predicted = object_map.last_T_o_c
+            where_it_was = None  # T_o_c: its last world pose seen from this camera
             if report.tracked and object_map.last_T_w_o is not None:
-                # The object most often stays where it was: predict it there, seen from this camera.
-                predicted = np.linalg.inv(object_map.last_T_w_o) @ report.T_w_c
+                # The object most often stays where it was: predict it there.
+                predicted = where_it_was = np.linalg.inv(object_map.last_T_w_o) @ report.T_w_c
             outcome = self.registrar.register_object(measurements, vlads, object_map, self.segment_index, predicted,
                                                      skip)
-            if report.tracked and object_map.last_T_w_o is not None and object_map.last_pose_registered \
-                    and outcome.success:
-                outcome = self._kept_at_rest(outcome, predicted, measurements.frame_index)
+            if where_it_was is not None and object_map.last_pose_registered and outcome.success:
+                outcome = self._kept_at_rest(outcome, where_it_was, measurements.frame_index)
             outcomes.append(outcome)
             logger.debug(
                 "frame %d: object %d frame-based %s (%d matches, %d inliers), segment-based %s (%d pairs)",
