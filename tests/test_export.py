@@ -73,3 +73,25 @@ def test_landmarks_csv_with_wrong_columns(tmp_path):
     write_csv(tmp_path / "landmarks.csv", ["frame", "count"], [[0, 1]])
     with pytest.raises(InputError, match="lacks column"):
         read_landmark_counts(tmp_path / "landmarks.csv")
+
+
+def test_tsdf_grid_grows_past_its_first_allocation(synth_sequence, monkeypatch):
+    """The dense model does not depend on how many voxel blocks the grid reserves at first:
+    the hash map grows as blocks are activated (the reservation was once 4 GB)."""
+    from types import SimpleNamespace
+
+    import jsr.export.meshes as meshes
+    from jsr.io.dataset import open_sequence
+    from jsr.io.trajectory import read_tum_trajectory
+
+    sequence = open_sequence(synth_sequence)
+    _, poses = read_tum_trajectory(synth_sequence / "groundtruth.txt")
+    keyframes = [SimpleNamespace(keyframe_id=k, frame_index=index, T_map_cam=poses[index])
+                 for k, index in enumerate(range(0, len(sequence), 5))]
+    map_ = SimpleNamespace(name="static", keyframes=keyframes)
+    reference, _ = meshes.fuse_keyframes(map_, sequence, 0.02, 4.0)
+    monkeypatch.setattr(meshes, "INITIAL_VOXEL_BLOCKS", 1)
+    grown, cloud = meshes.fuse_keyframes(map_, sequence, 0.02, 4.0)
+    assert len(reference.vertices) > 1000 and len(cloud.points) > 1000
+    assert np.array_equal(np.asarray(grown.vertices), np.asarray(reference.vertices))
+    assert np.array_equal(np.asarray(grown.triangles), np.asarray(reference.triangles))
