@@ -164,6 +164,7 @@ class ObjectsConfig:
     extent_share: float = 0.5
     retire_object_matches: bool = True
     hold_back_suspects: bool = True
+    hold_back_beside_moved: bool = True
     retire_after_outliers: int = 0
     retire_after_vacated: int = 3
     vacated_cluster_size: int = 5
@@ -216,6 +217,7 @@ class BundleAdjustmentConfig:
     pixel_sigma: float = 1.0
     plane_normal_sigma: float = 0.01
     plane_offset_sigma: float = 0.01
+    min_shared_landmarks: int = 3
 
 
 @dataclass
@@ -346,6 +348,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "bundle_adjustment.pixel_sigma": (lambda v: v > 0, "positive"),
     "bundle_adjustment.plane_normal_sigma": (lambda v: v > 0, "positive"),
     "bundle_adjustment.plane_offset_sigma": (lambda v: v > 0, "positive"),
+    "bundle_adjustment.min_shared_landmarks": (lambda v: v >= 0, "at least 0"),
     "output.mesh_voxel_size": (lambda v: v > 0, "positive"),
 }
 

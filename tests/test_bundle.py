@@ -253,6 +253,44 @@ def test_window_holds_older_keyframes_fixed():
     assert not np.allclose(before[5:], after[5:])
 
 
+def island_map(rng, shared: int):
+    """8 keyframes (no planes) whose last 3 observe their own copies of the landmarks, but for
+    ``shared`` landmarks they keep in common with the first 5: a group of keyframes that a jump
+    of an object left tied to the rest of its map by a few landmarks."""
+    scene = make_scene(rng, keyframes=8, landmarks=300, planes=0)
+    the_map = build_map(scene, rng)
+    count = len(scene.landmarks)
+    copies = the_map.points.add(scene.landmarks.copy(), np.zeros((count, 128), np.float32), np.full(count, 0.005),
+                                np.zeros((count, 3), np.uint8))
+    early = np.unique(np.concatenate([o.landmarks for o in scene.observations[:5]]))
+    late = np.unique(np.concatenate([o.landmarks for o in scene.observations[5:]]))
+    kept = np.intersect1d(early, late)[:shared]
+    for keyframe in the_map.keyframes[5:]:
+        island = ~np.isin(keyframe.point_landmarks, kept)
+        keyframe.point_landmarks = np.where(island, copies[keyframe.point_landmarks], keyframe.point_landmarks)
+    return the_map
+
+
+@pytest.mark.parametrize("shared, island_pinned", [(1, True), (2, True), (3, False), (20, False)])
+def test_a_group_of_free_keyframes_barely_tied_to_the_rest_keeps_its_oldest_fixed(shared, island_pinned):
+    the_map = island_map(np.random.default_rng(4), shared)
+    config = BundleAdjustmentConfig(enabled=True, min_shared_landmarks=3)
+    problem = BundleProblem.from_map(the_map, config, NOISE, K, window=4)
+    free = {int(k): int(slot) >= 0 for k, slot in zip(problem.keyframe_indices, problem.free_index)}
+    assert free[4] and free[6] and free[7]  # keyframe 4 shares hundreds with the fixed ones
+    assert free[5] is not island_pinned
+    # with min_shared_landmarks 1, one common landmark links
+    lenient = BundleProblem.from_map(the_map, replace(config, min_shared_landmarks=1), NOISE, K, window=4)
+    assert np.all(lenient.free_index[np.isin(lenient.keyframe_indices, [4, 5, 6, 7])] >= 0)
+    # the pinned group is still adjusted within itself
+    before = the_map.keyframe_poses.copy()
+    result = bundle_adjust(the_map, config, NOISE, K, window=4)
+    after = the_map.keyframe_poses
+    assert result.success and result.keyframes_fixed == 4 + int(island_pinned)
+    assert bool(np.array_equal(before[5], after[5])) is island_pinned
+    assert not np.allclose(before[6:], after[6:])
+
+
 def test_huber_loss_has_scipys_huber_cost():
     residuals = np.array([0.1, -0.5, 1.9, -2.5, 7.0, 40.0])
     costs = [least_squares(lambda x: residuals + 0 * x, np.zeros(1), loss=loss, f_scale=2.0).cost

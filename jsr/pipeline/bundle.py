@@ -5,6 +5,9 @@ locations" by minimising the registration error. Here one run works on a *window
 ``window_keyframes`` keyframes of the map are free, every landmark they observe is free, and
 every other keyframe that observes one of those landmarks contributes its observations with
 its pose held fixed. The first keyframe of a map is always fixed (it defines the map frame).
+Keyframes that observe at least ``min_shared_landmarks`` common landmarks are linked; a group
+of free keyframes linked to no fixed keyframe has its oldest keyframe held fixed, since the few
+landmarks it shares with the rest do not fix where the group lies (:func:`_linked_groups`).
 
 Parameters (all increments from the current state, so ``x0 = 0``; the solver itself sees them
 shifted by :data:`SOLVER_OFFSET`):
@@ -270,15 +273,18 @@ class BundleProblem:
         frame_slot = np.full(total, -1, dtype=np.int64)
         frame_slot[frames] = np.arange(len(frames))
         free = frames >= first_free
-        # gauge: if no fixed keyframe constrains the window, hold its oldest keyframe fixed
-        fixed_observes = np.zeros(total, dtype=bool)
-        fixed_observes[obs_frame[keep]] = True
-        fixed_observes[pobs_frame[pkeep]] = True
-        if not np.any(fixed_observes[frames[~free]]):
-            oldest = int(np.argmax(free))
-            free[oldest] = False
-            logger.debug("%s: no fixed keyframe observes the window; holding keyframe %d fixed",
-                         map.name, int(frames[oldest]))
+        # gauge: every group of free keyframes must be tied to a fixed keyframe
+        linked_groups = _linked_groups(len(frames), frame_slot[obs_frame[keep]], obs_landmark[keep],
+                                       frame_slot[pobs_frame[pkeep]], pobs_landmark[pkeep],
+                                       max(1, config.min_shared_landmarks))
+        for group in np.unique(linked_groups):
+            members = np.flatnonzero(linked_groups == group)
+            if free[members].all():
+                oldest = int(members[0])
+                free[oldest] = False
+                logger.debug("%s: keyframes %s are linked to no fixed keyframe by %d common landmarks; holding "
+                             "keyframe %d fixed", map.name, frames[members].tolist(),
+                             max(1, config.min_shared_landmarks), int(frames[oldest]))
         if not free.any():
             return None
         problem.keyframe_indices = frames
@@ -501,6 +507,39 @@ class BundleProblem:
             num_points=self.num_points,
             num_planes=self.num_planes,
         )
+
+
+def _linked_groups(num_frames: int, point_frames: np.ndarray, point_landmarks: np.ndarray, plane_frames: np.ndarray,
+                   plane_landmarks: np.ndarray, min_shared: int) -> np.ndarray:
+    """``(num_frames,)`` group label per keyframe of a problem: keyframes are linked when they
+    observe at least ``min_shared`` common landmarks (points and planes together), and a group
+    is what links connect. Observations are given as keyframe slots ``(K,)`` and landmark ids
+    ``(K,)``, point and plane ids counted apart.
+
+    Why: the window's gauge is set by the fixed keyframes, but a group of free keyframes tied to
+    them by a handful of landmarks (an object map after a jump its landmarks barely bridged) has
+    a pose that those few fix poorly, and least squares may turn it far to fit one bad match."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    labels = np.arange(num_frames)
+    columns, rows = [], []
+    for frames, landmarks in ((point_frames, point_landmarks), (plane_frames, plane_landmarks)):
+        if len(frames):
+            _, landmark_column = np.unique(landmarks, return_inverse=True)
+            rows.append(frames)
+            columns.append(landmark_column + sum(int(c.max()) + 1 for c in columns))
+    if not rows:
+        return labels
+    rows_all, columns_all = np.concatenate(rows), np.concatenate(columns)
+    incidence = coo_matrix((np.ones(len(rows_all)), (rows_all, columns_all)),
+                           shape=(num_frames, int(columns_all.max()) + 1)).tocsr()
+    incidence.data[:] = 1.0  # a landmark observed twice by one keyframe counts once
+    shared = (incidence @ incidence.T).tocoo()
+    strong = shared.data >= min_shared
+    links = coo_matrix((np.ones(int(strong.sum())), (shared.row[strong], shared.col[strong])),
+                       shape=(num_frames, num_frames))
+    return connected_components(links, directed=False)[1]
 
 
 def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -83,6 +83,7 @@ class ObjectTrackingResult:
     seed_segments: list[int] = field(default_factory=list)
     segment_pairs_tried: int = 0
     pose_from_surface: bool = False  # re-identified by a surface alignment alone
+    moved_from_rest: bool = False  # its last world pose no longer explains its registration (see Reconstructor._kept_at_rest)
 
     @property
     def frame_success(self) -> bool:

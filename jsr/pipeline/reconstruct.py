@@ -397,6 +397,9 @@ class Reconstructor:
         self._previous_static_inliers = None if static is None or static.bridged else static_inlier_landmarks(static)
         tic = time.perf_counter()
         if static is not None:
+            if objects_on and self.config.objects.hold_back_beside_moved and not static.bridged:
+                self._suspect_segments.extend(self._beside_moved_objects(frame, measurements, report, static,
+                                                                         tracked_objects, assignment))
             self._update_static(frame, measurements, report, static, assignment)
             self._retire_static_landmarks(static, assignment)
             if objects_on:
@@ -581,12 +584,12 @@ class Reconstructor:
         if extra > bound:
             logger.debug("frame %d: object %d moved (its last world pose costs %.1f more)", frame_index, object_id,
                          extra)
-            return outcome
+            return dataclasses.replace(outcome, moved_from_rest=True)
         resting = evaluate_pose(resting_T_o_c, registered.correspondences, ransac, noise)
         if not resting.success:
             logger.debug("frame %d: object %d moved (its last world pose: %s)", frame_index, object_id,
                          resting.reason)
-            return outcome
+            return dataclasses.replace(outcome, moved_from_rest=True)
         logger.debug("frame %d: object %d at rest (its last world pose costs %.1f more)", frame_index, object_id,
                      extra)
         if outcome.segment_success:
@@ -1723,6 +1726,46 @@ class Reconstructor:
         report.new_keyframe = True
         self._remember_depth(frame, measurements, assignment)
         self.bundle.maybe_start(self.static_map)
+
+    def _beside_moved_objects(self, frame: Frame, measurements: FrameMeasurements, report: FrameReport,
+                              static: StaticRegistration, outcomes: list[ObjectTrackingResult],
+                              assignment: FrameAssignment) -> list[int]:
+        """Segments to hold back from the static keyframe (``objects.hold_back_beside_moved``):
+        unowned, with no static inlier, and depth-adjacent to a segment of an object that moved
+        in this frame (started, found again after it was lost, or left its resting pose).
+
+        Why: where an object has just moved to, the static map knows nothing, and a face of it
+        that its map has not taken (a side seen at a grazing angle, whose keypoints have little
+        depth) would give the static keyframe its landmarks and its depth. From then on the face
+        is static: its features are static inliers and its surface is where a keyframe saw one.
+        Held back, it stays unexplained, and the growth rules can give it to the object in the
+        next frames (synth_jump s1 at 320x240: the box's side face, frames 29-37)."""
+        moved = set(report.objects_created)
+        for outcome in outcomes:
+            object_map = outcome.object_map
+            if outcome.best is not None and (object_map.lost or outcome.moved_from_rest):
+                moved.add(object_map.object_id)  # found again in this frame, or it left its resting pose
+        owner = assignment.segment_owner
+        of_moved = np.isin(owner, sorted(moved))
+        if not of_moved.any():
+            return []
+        adjacency = self._adjacency(frame, measurements)
+        if not len(adjacency):
+            return []
+        point_inliers, _ = inlier_mask(static.matched, static.result, len(measurements.points),
+                                       len(measurements.planes))
+        point_segment = measurements.segments.segment_of_points(len(measurements.points))
+        static_count = np.bincount(point_segment[point_inliers & (point_segment >= 0)],
+                                   minlength=len(measurements.segments))
+        beside = np.zeros(len(owner), dtype=bool)
+        first, second = adjacency[:, 0], adjacency[:, 1]
+        beside[first[of_moved[second]]] = True
+        beside[second[of_moved[first]]] = True
+        held = np.flatnonzero(beside & (owner == 0) & (static_count == 0)).tolist()
+        if held:
+            logger.debug("frame %d: objects %s moved; segments %s beside them, with no static inlier, are held back",
+                         frame.index, sorted(moved), held)
+        return held
 
     def _holding_back(self) -> bool:
         """Whether this frame has suspect segments to keep out of a static keyframe
