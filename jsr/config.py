@@ -162,6 +162,7 @@ class ObjectsConfig:
     split_mixed_segments: bool = True
     extent_margin: float = 0.03
     extent_share: float = 0.5
+    extent_from_surface: bool = True
     retire_object_matches: bool = True
     hold_back_suspects: bool = True
     hold_back_beside_moved: bool = True
@@ -174,6 +175,7 @@ class ObjectsConfig:
     resting_max_extra_cost: float = 16.8
     reidentify: bool = True
     shape_reidentify: bool = True
+    shape_attempts: int = 2
     shape_voxel: float = 0.01
     shape_radius_px: float = 40.0
     shape_min_fitness: float = 0.5
@@ -341,6 +343,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "vlad.training_descriptors": (lambda v: v >= 100, "at least 100"),
     "vlad.kmeans_iterations": (lambda v: v >= 1, "at least 1"),
     "vlad.candidate_segments": (lambda v: v >= 1, "at least 1"),
+    "objects.shape_attempts": (lambda v: v >= 1, "at least 1"),
     "bundle_adjustment.every_keyframes": (lambda v: v >= 1, "at least 1"),
     "bundle_adjustment.window_keyframes": (lambda v: v >= 2, "at least 2"),
     "bundle_adjustment.max_iterations": (lambda v: v >= 1, "at least 1"),

@@ -94,6 +94,7 @@ FREE_SPACE_VIEWS = 2  # ... against the latest static keyframes
 MAX_OBJECT_ID = 255  # ownership masks are uint8 images
 SHAPE_CANDIDATES = 4  # surface alignments (best colour agreement first) tried by feature matching
 SURFACE_STRIDE = 2  # object surface samples (shape-based re-identification) use every 2nd pixel and row
+EXTENT_SURFACE_STEP = 8  # an object's extent takes every 8th of its surface samples (objects.extent_from_surface)
 SHAPE_RIVAL_FITNESS_GAP = 0.1  # a surface fit this close in fitness to the chosen one, whose texture passes too, makes the surface ambiguous
 SHAPE_MODE_METRES, SHAPE_MODE_DEGREES = 0.1, 15.0  # fits closer than this (at the region) are one fit, not rivals
 SHAPE_CONFIRM_METRES, SHAPE_CONFIRM_DEGREES = 0.2, 30.0  # landmarks confirm a surface fit within this of it
@@ -815,7 +816,7 @@ class Reconstructor:
         if static is not None:
             static_inliers, _ = inlier_mask(static.matched, static.result, num_points, num_planes)
         by_id = {o.object_map.object_id: o for o in outcomes if o.success}
-        hulls = {object_id: extent_hull(o.object_map.points.positions[o.object_map.points.active])
+        hulls = {object_id: extent_hull(self._extent_points(o.object_map))
                  for object_id, o in by_id.items()}  # each object's extent, once per frame
         if tracked and self.config.objects.segment_completion:
             # Evidence: points that are inliers of the registration of the map they were given to.
@@ -1270,6 +1271,21 @@ class Reconstructor:
     def _reidentify_by_shape(self, frame: Frame, measurements: FrameMeasurements, group: list[int],
                              group_points: np.ndarray, lost: list[ObjectMap],
                              outcomes: dict[int, ObjectTrackingResult], assignment: FrameAssignment) -> bool:
+        """:meth:`_align_to_lost_objects` up to ``objects.shape_attempts`` times, while it keeps
+        no alignment: its RANSAC draws from FPFH pairs, and once in a while no draw finds the
+        right alignment (synth_two_sim s5, frame 18: 1 draw in 40 missed a cylinder that the
+        others found, and the cylinder started a second map)."""
+        for attempt in range(self.config.objects.shape_attempts):
+            if self._align_to_lost_objects(frame, measurements, group, group_points, lost, outcomes, assignment):
+                if attempt:
+                    logger.debug("frame %d: region %s found by surface alignment at attempt %d", frame.index, group,
+                                 attempt + 1)
+                return True
+        return False
+
+    def _align_to_lost_objects(self, frame: Frame, measurements: FrameMeasurements, group: list[int],
+                               group_points: np.ndarray, lost: list[ObjectMap],
+                               outcomes: dict[int, ObjectTrackingResult], assignment: FrameAssignment) -> bool:
         """The region's surface aligned to each lost object's surface model
         (:func:`~jsr.pipeline.surfaces.align_surfaces`); each alignment is a pose prediction
         for prediction-based matching of the region's keypoints with the object's landmarks
@@ -1623,6 +1639,26 @@ class Reconstructor:
                     0.5 * self.config.objects.shape_voxel)
         if samples:
             self.object_surfaces[frame.index] = samples
+
+    def _extent_points(self, object_map: ObjectMap) -> np.ndarray:
+        """``(N, 3)`` points (object map frame) whose convex hull is the object's extent: its
+        active landmarks and, with ``objects.extent_from_surface``, every EXTENT_SURFACE_STEP-th
+        surface sample of its keyframes (at their current poses).
+
+        Why the samples: a face whose keypoints have no depth (seen at a grazing angle, at
+        320x240 a whole side of a box) adds no landmark, so the hull of the landmarks leaves it
+        out, and once the keyframes that saw it move in have left the free-space views nothing
+        gives it to the object any more."""
+        landmarks = object_map.points.positions[object_map.points.active]
+        if not self.config.objects.extent_from_surface:
+            return landmarks
+        parts = [landmarks]
+        for keyframe in object_map.keyframes:
+            sample = self.object_surfaces.get(keyframe.frame_index, {}).get(object_map.object_id)
+            if sample is not None and len(sample.points):
+                parts.append(transform_points(keyframe.T_map_cam,
+                                              sample.points[::EXTENT_SURFACE_STEP].astype(np.float64)))
+        return np.vstack(parts)
 
     def _surface_model(self, object_map: ObjectMap) -> SurfaceModel | None:
         """The object's surface in its map frame, from the samples of its keyframes (at their
