@@ -351,7 +351,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "bundle_adjustment.pixel_sigma": (lambda v: v > 0, "positive"),
     "bundle_adjustment.plane_normal_sigma": (lambda v: v > 0, "positive"),
     "bundle_adjustment.plane_offset_sigma": (lambda v: v > 0, "positive"),
-    "bundle_adjustment.min_shared_landmarks": (lambda v: v >= 0, "at least 0"),
+    "bundle_adjustment.min_shared_landmarks": (lambda v: v >= 1, "at least 1"),
     "output.mesh_voxel_size": (lambda v: v > 0, "positive"),
 }
 

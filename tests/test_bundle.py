@@ -291,6 +291,20 @@ def test_a_group_of_free_keyframes_barely_tied_to_the_rest_keeps_its_oldest_fixe
     assert not np.allclose(before[6:], after[6:])
 
 
+def test_linked_groups_count_points_and_planes_apart():
+    from jsr.pipeline.bundle import _linked_groups
+
+    none = np.zeros(0, dtype=np.int64)
+    assert _linked_groups(3, none, none, none, none, 1).tolist() == [0, 1, 2]  # nothing observed: no links
+    # keyframes 0 and 1 share planes 0-2; point 0 and plane 0 are different landmarks
+    planes_frames, planes = np.array([0, 0, 0, 1, 1, 1, 2]), np.array([0, 1, 2, 0, 1, 2, 5])
+    groups = _linked_groups(3, none, none, planes_frames, planes, 3)
+    assert groups[0] == groups[1] != groups[2]
+    groups = _linked_groups(3, np.array([0, 2, 2]), np.array([0, 0, 0]), planes_frames, planes, 3)
+    assert groups[0] == groups[1] != groups[2]  # keyframe 2 sees point 0 twice: one shared landmark with none
+    assert len(set(_linked_groups(3, np.array([0, 2]), np.array([0, 0]), planes_frames, planes, 1))) == 1
+
+
 def test_huber_loss_has_scipys_huber_cost():
     residuals = np.array([0.1, -0.5, 1.9, -2.5, 7.0, 40.0])
     costs = [least_squares(lambda x: residuals + 0 * x, np.zeros(1), loss=loss, f_scale=2.0).cost

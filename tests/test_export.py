@@ -89,9 +89,12 @@ def test_tsdf_grid_grows_past_its_first_allocation(synth_sequence, monkeypatch):
     keyframes = [SimpleNamespace(keyframe_id=k, frame_index=index, T_map_cam=poses[index])
                  for k, index in enumerate(range(0, len(sequence), 5))]
     map_ = SimpleNamespace(name="static", keyframes=keyframes)
-    reference, _ = meshes.fuse_keyframes(map_, sequence, 0.02, 4.0)
+    reference, reference_cloud = meshes.fuse_keyframes(map_, sequence, 0.02, 4.0)
     monkeypatch.setattr(meshes, "INITIAL_VOXEL_BLOCKS", 1)
     grown, cloud = meshes.fuse_keyframes(map_, sequence, 0.02, 4.0)
     assert len(reference.vertices) > 1000 and len(cloud.points) > 1000
     assert np.array_equal(np.asarray(grown.vertices), np.asarray(reference.vertices))
     assert np.array_equal(np.asarray(grown.triangles), np.asarray(reference.triangles))
+    assert np.array_equal(np.asarray(grown.vertex_colors), np.asarray(reference.vertex_colors))
+    assert np.array_equal(np.asarray(cloud.points), np.asarray(reference_cloud.points))
+    assert np.array_equal(np.asarray(cloud.colors), np.asarray(reference_cloud.colors))

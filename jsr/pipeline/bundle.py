@@ -276,7 +276,7 @@ class BundleProblem:
         # gauge: every group of free keyframes must be tied to a fixed keyframe
         linked_groups = _linked_groups(len(frames), frame_slot[obs_frame[keep]], obs_landmark[keep],
                                        frame_slot[pobs_frame[pkeep]], pobs_landmark[pkeep],
-                                       max(1, config.min_shared_landmarks))
+                                       config.min_shared_landmarks)
         for group in np.unique(linked_groups):
             members = np.flatnonzero(linked_groups == group)
             if free[members].all():
@@ -284,7 +284,7 @@ class BundleProblem:
                 free[oldest] = False
                 logger.debug("%s: keyframes %s are linked to no fixed keyframe by %d common landmarks; holding "
                              "keyframe %d fixed", map.name, frames[members].tolist(),
-                             max(1, config.min_shared_landmarks), int(frames[oldest]))
+                             config.min_shared_landmarks, int(frames[oldest]))
         if not free.any():
             return None
         problem.keyframe_indices = frames
@@ -518,17 +518,21 @@ def _linked_groups(num_frames: int, point_frames: np.ndarray, point_landmarks: n
 
     Why: the window's gauge is set by the fixed keyframes, but a group of free keyframes tied to
     them by a handful of landmarks (an object map after a jump its landmarks barely bridged) has
-    a pose that those few fix poorly, and least squares may turn it far to fit one bad match."""
+    a pose that those few fix poorly, and least squares may turn it far to fit one bad match.
+    Links are counted per pair of keyframes: a group tied to two fixed keyframes by 2 landmarks
+    each counts as unlinked (on the safe side: it keeps its pose)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
     labels = np.arange(num_frames)
     columns, rows = [], []
+    offset = 0  # point and plane landmarks get columns of their own
     for frames, landmarks in ((point_frames, point_landmarks), (plane_frames, plane_landmarks)):
         if len(frames):
-            _, landmark_column = np.unique(landmarks, return_inverse=True)
+            ids, landmark_column = np.unique(landmarks, return_inverse=True)
             rows.append(frames)
-            columns.append(landmark_column + sum(int(c.max()) + 1 for c in columns))
+            columns.append(landmark_column + offset)
+            offset += len(ids)
     if not rows:
         return labels
     rows_all, columns_all = np.concatenate(rows), np.concatenate(columns)

@@ -83,7 +83,7 @@ class ObjectTrackingResult:
     seed_segments: list[int] = field(default_factory=list)
     segment_pairs_tried: int = 0
     pose_from_surface: bool = False  # re-identified by a surface alignment alone
-    moved_from_rest: bool = False  # its last world pose no longer explains its registration (see Reconstructor._kept_at_rest)
+    moved_from_rest: bool = False  # registered away from its last world pose (Reconstructor._kept_at_rest)
 
     @property
     def frame_success(self) -> bool:
@@ -365,10 +365,11 @@ EXTENT_OUTLIER_FACTOR = 3.0  # landmarks farther from the median than this many 
 
 
 def extent_hull(landmarks: np.ndarray):
-    """The convex hull (scipy ``ConvexHull``) of ``(L, 3)`` object landmarks, or None when
-    there are fewer than 8 of them or they span no volume. Landmarks farther from their median
-    than ``EXTENT_OUTLIER_FACTOR`` times the median distance are left out: one stray landmark
-    (a scene feature the object map took) must not stretch the extent over the scene."""
+    """The convex hull (scipy ``ConvexHull``) of ``(L, 3)`` object points (its landmarks, and
+    with ``objects.extent_from_surface`` its surface samples), or None when there are fewer
+    than 8 of them or they span no volume. Points farther from their median than
+    ``EXTENT_OUTLIER_FACTOR`` times the median distance are left out: one stray landmark (a
+    scene feature the object map took) must not stretch the extent over the scene."""
     from scipy.spatial import ConvexHull, QhullError
 
     landmarks = np.asarray(landmarks, dtype=float).reshape(-1, 3)
