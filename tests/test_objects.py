@@ -1181,9 +1181,15 @@ def test_extent_spans_the_faces_without_3d_keypoints(side_face_sequence, from_su
 
 def test_surface_alignment_is_drawn_again_while_nothing_is_kept(monkeypatch):
     """objects.shape_attempts: a region that no alignment explains is aligned again (RANSAC may
-    miss the right alignment once), and no more once one is kept."""
+    miss the right alignment once), and no more once one is kept; the region's surface is
+    sampled once for all attempts."""
     from jsr.synth import synth_intrinsics
 
+    labels = np.full((240, 320), -1, dtype=np.int32)
+    labels[100:160, 120:200] = 3  # the moving region: segment 3, a flat patch 1 m away
+    frame = SimpleNamespace(index=7, depth=np.ones((240, 320), dtype=np.float32),
+                            color=np.full((240, 320, 3), 128, dtype=np.uint8))
+    measurements = SimpleNamespace(segments=SimpleNamespace(label_image=labels))
     for attempts, results, calls, found in [(2, [False, True], 2, True), (1, [False, True], 1, False),
                                             (3, [True, False, False], 1, True), (2, [False, False], 2, False)]:
         reconstructor = Reconstructor(load_config(None, [f"objects.shape_attempts={attempts}"]),
@@ -1191,7 +1197,7 @@ def test_surface_alignment_is_drawn_again_while_nothing_is_kept(monkeypatch):
         answers = iter(results)
         seen = []
         monkeypatch.setattr(reconstructor, "_align_to_lost_objects", lambda *args: seen.append(args) or next(answers))
-        frame = SimpleNamespace(index=7)
-        assert reconstructor._reidentify_by_shape(frame, None, [3], None, [], {}, None) is found
+        assert reconstructor._reidentify_by_shape(frame, measurements, [3], None, [], {}, None) is found
         assert len(seen) == calls
+        assert all(args[4] is seen[0][4] for args in seen)  # one region model, reused
         reconstructor.close()

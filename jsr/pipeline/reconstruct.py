@@ -1280,9 +1280,21 @@ class Reconstructor:
         """:meth:`_align_to_lost_objects` up to ``objects.shape_attempts`` times, while it keeps
         no alignment: its RANSAC draws from FPFH pairs, and once in a while no draw finds the
         right alignment (synth_two_sim s5, frame 18: 1 draw in 40 missed a cylinder that the
-        others found, and the cylinder started a second map)."""
-        for attempt in range(self.config.objects.shape_attempts):
-            if self._align_to_lost_objects(frame, measurements, group, group_points, lost, outcomes, assignment):
+        others found, and the cylinder started a second map). Only the alignments are drawn
+        again: the region's surface, the lost objects' models and their own views' texture
+        agreement are computed once."""
+        config = self.config.objects
+        region_mask = np.isin(measurements.segments.label_image, group)
+        sample = sample_surface(frame.depth, frame.color, region_mask, self.intrinsics, SURFACE_STRIDE,
+                                0.5 * config.shape_voxel)
+        region = region_model(sample, config.shape_voxel)
+        if region is None:
+            return False
+        models = [(object_map, model) for object_map in lost if (model := self._surface_model(object_map)) is not None]
+        own_textures: dict[int, float | None] = {}  # :meth:`_surface_self_texture` per map, once (~0.3 s each)
+        for attempt in range(config.shape_attempts):
+            if self._align_to_lost_objects(frame, measurements, group, group_points, region, models, own_textures,
+                                           outcomes, assignment):
                 if attempt:
                     logger.debug("frame %d: region %s found by surface alignment at attempt %d", frame.index, group,
                                  attempt + 1)
@@ -1290,9 +1302,11 @@ class Reconstructor:
         return False
 
     def _align_to_lost_objects(self, frame: Frame, measurements: FrameMeasurements, group: list[int],
-                               group_points: np.ndarray, lost: list[ObjectMap],
+                               group_points: np.ndarray, region: SurfaceModel,
+                               models: list[tuple[ObjectMap, SurfaceModel]], own_textures: dict[int, float | None],
                                outcomes: dict[int, ObjectTrackingResult], assignment: FrameAssignment) -> bool:
-        """The region's surface aligned to each lost object's surface model
+        """The region's surface (``region``, camera frame) aligned to each lost object's surface
+        model (``models``; ``own_textures`` caches :meth:`_surface_self_texture` per map)
         (:func:`~jsr.pipeline.surfaces.align_surfaces`); each alignment is a pose prediction
         for prediction-based matching of the region's keypoints with the object's landmarks
         (``objects.shape_radius_px``). The registration with most inliers wins if it succeeds
@@ -1307,20 +1321,11 @@ class Reconstructor:
         (SIFT does not survive a 50-degree change of view), so when no landmarks confirm any
         alignment, one alignment alone may still decide (:meth:`_shape_alone`)."""
         config = self.config.objects
-        region_mask = np.isin(measurements.segments.label_image, group)
-        sample = sample_surface(frame.depth, frame.color, region_mask, self.intrinsics, SURFACE_STRIDE,
-                                0.5 * config.shape_voxel)
-        region = region_model(sample, config.shape_voxel)
-        if region is None:
-            return False
         region_centre = region.points.mean(axis=0)  # where alignments are compared (same_placement)
         best = None
         fits = []  # (object map, its surface model, the alignments): for the surface-alone decision
         away = []  # (object map, surface fit, matches, registration) of landmarks that registered away from their fit
-        for object_map in lost:
-            model = self._surface_model(object_map)
-            if model is None:
-                continue
+        for object_map, model in models:
             landmarks = np.flatnonzero(object_map.points.active)
             alignments = align_surfaces(region, model, config.shape_voxel, self.objects_rng)
             fits.append((object_map, model, alignments))
@@ -1349,7 +1354,6 @@ class Reconstructor:
                 if best is None or result.num_inliers > best[3].num_inliers:
                     best = (object_map, T_o_c, matched, result)
         shape_alone = []
-        own_textures: dict[int, float | None] = {}
 
         def own_texture(object_map: ObjectMap) -> float | None:
             """:meth:`_surface_self_texture`, computed once per map here (model builds, ~0.3 s)."""
@@ -1363,9 +1367,9 @@ class Reconstructor:
         if best is None:
             best = self._landmarks_agree_elsewhere(away, region_centre)
         if best is None and away:
-            models = {object_map.object_id: model for object_map, model, _ in fits}
+            model_of = {object_map.object_id: model for object_map, model, _ in fits}
             best = next((item for item in sorted(away, key=lambda item: -item[3].num_inliers)
-                         if self._surface_agrees(item[0], region, models[item[0].object_id],
+                         if self._surface_agrees(item[0], region, model_of[item[0].object_id],
                                                  item[3].transformation, view, own_texture(item[0]))), None)
 
         def alone(object_map: ObjectMap, model: SurfaceModel, alignments: list[Alignment]) -> Alignment | None:
