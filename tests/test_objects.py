@@ -490,11 +490,35 @@ def test_vacated_landmarks_are_retired_only_once_something_moved(jump_sequence):
     assert retired.sum() > 50
 
 
-def _recent_landmark_pixels(reconstructor, T_w_c):
-    """Ids, rounded pixels ``(N, 2)`` and depths ``(N,)`` of the static landmarks the vacated
-    test looks at, seen from ``T_w_c``."""
+def test_vacated_retirement_reaches_landmarks_of_old_keyframes(jump_sequence):
+    """The vacated test looks at every active static landmark, not only those of the recent
+    keyframes: an object's landmarks from before it moved are in keyframes that are no longer
+    recent when its old place comes back into view."""
+    overrides = ["objects.retire_after_vacated=2", "matching.recent_keyframes=1",
+                 "objects.vacated_cluster_size=0"]  # old landmarks far apart count one by one
+    result = run(jump_sequence, overrides, sequence=open_sequence(jump_sequence, max_frames=4))
+    reconstructor = result.reconstructor
+    static_map = reconstructor.static_map
+    assert len(static_map.keyframes) >= 2
+    recent = static_map.recent_point_landmarks(1)
+    old_only = np.setdiff1d(np.flatnonzero(static_map.points.active), recent)
+    assert len(old_only) > 20
+    reconstructor._next_object_id = 2  # as if object 1 had been detected
+    T_w_c = result.reports[-1].T_w_c
+    far = SimpleNamespace(depth=np.full((HEIGHT, WIDTH), 20.0, dtype=np.float32))  # everything seen through
+    in_view = _static_landmark_pixels(reconstructor, T_w_c)[0]
+    old_in_view = np.intersect1d(old_only, in_view)
+    assert len(old_in_view) > 20
+    for _ in range(2):
+        reconstructor._retire_vacated_landmarks(far, T_w_c, SimpleNamespace(bridged=True))
+    assert not static_map.points.active[old_in_view].any()
+
+
+def _static_landmark_pixels(reconstructor, T_w_c):
+    """Ids, rounded pixels ``(N, 2)`` and depths ``(N,)`` of the active static landmarks (all
+    of them: the vacated test looks at every one) in view from ``T_w_c``."""
     points = reconstructor.static_map.points
-    ids = reconstructor.static_map.recent_point_landmarks(reconstructor.config.matching.recent_keyframes)
+    ids = reconstructor.static_map.recent_point_landmarks(None)
     camera = (points.positions[ids] - T_w_c[:3, 3]) @ T_w_c[:3, :3]
     (u, v), inside, _ = reconstructor._depth_at_projections(camera, np.zeros((HEIGHT, WIDTH)))
     return ids[inside], np.stack([u[inside], v[inside]], axis=1), camera[inside, 2]
@@ -509,7 +533,7 @@ def test_vacated_retirement_spares_a_surface_beside_the_pixel(jump_sequence, win
     reconstructor = result.reconstructor
     reconstructor._next_object_id = 2  # as if object 1 had been detected
     T_w_c = result.reports[-1].T_w_c
-    ids, pixels, depths = _recent_landmark_pixels(reconstructor, T_w_c)
+    ids, pixels, depths = _static_landmark_pixels(reconstructor, T_w_c)
     edge = np.full((HEIGHT, WIDTH), 20.0, dtype=np.float32)
     beside = np.clip(pixels[:, 0] + 1, 0, WIDTH - 1)
     edge[pixels[:, 1], beside] = depths
@@ -536,7 +560,7 @@ def test_vacated_retirement_needs_an_area_seen_through(jump_sequence, cluster_si
     reconstructor = result.reconstructor
     reconstructor._next_object_id = 2
     T_w_c = result.reports[-1].T_w_c
-    ids, pixels, _ = _recent_landmark_pixels(reconstructor, T_w_c)
+    ids, pixels, _ = _static_landmark_pixels(reconstructor, T_w_c)
     # the landmark farthest in the image from any other: a hole around it holds it alone
     gaps = np.linalg.norm(pixels[:, None, :] - pixels[None, :, :], axis=2) + np.eye(len(ids)) * 1e9
     alone = int(np.argmax(gaps.min(axis=1)))
