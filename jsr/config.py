@@ -146,6 +146,7 @@ class DetectionConfig:
     where_lost: bool = True
     merge_gap_pixels: int = 2
     min_object_points: int = 15
+    partial_outlier_ratio: float = 0.3
 
 
 @dataclass
@@ -300,6 +301,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "keyframes.translation": (lambda v: v >= 0, "at least 0"),
     "keyframes.rotation_degrees": (lambda v: v >= 0, "at least 0"),
     "detection.segment_outlier_ratio": (lambda v: 0 < v <= 1, "in (0, 1]"),
+    "detection.partial_outlier_ratio": (lambda v: 0 <= v <= 1, "in [0, 1] (0: off)"),
     "detection.min_segment_features": (lambda v: v >= 1, "at least 1"),
     "detection.merge_gap_pixels": (lambda v: v >= 0, "at least 0"),
     "detection.min_motion": (lambda v: v >= 0, "at least 0"),

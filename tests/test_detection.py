@@ -12,6 +12,7 @@ from jsr.pipeline.detection import (
     detect_moving_segments,
     displaced_landmark_groups,
     merge_adjacent_moving_segments,
+    partially_moving_segments,
     segment_adjacency_pairs,
     segment_outlier_stats,
 )
@@ -67,6 +68,22 @@ def test_detects_segments_with_high_outlier_ratio_and_enough_features():
     assert detect_moving_segments(segments, matched, inlier, DetectionConfig(0.6, 4, significance=1.0)) == [1, 2]
     assert detect_moving_segments(segments, matched, inlier, DetectionConfig(0.55, 5, significance=1.0)) == [1, 3]
     assert detect_moving_segments(segments, matched, inlier, DetectionConfig(0.85, 1, significance=1.0)) == [2]
+
+
+def test_partially_moving_segments_lie_between_the_two_ratios():
+    """detection.partial_outlier_ratio: segments with more outliers than it (and at least
+    min_segment_features of them) but not above segment_outlier_ratio are the candidates for
+    a whole-segment rigid turn; 0 turns them off."""
+    segments, matched, inlier = _four_segments()  # outlier ratios 0.1, 0.8, 1.0 (4 matched), 0.6
+    config = DetectionConfig(segment_outlier_ratio=0.6, min_segment_features=5, partial_outlier_ratio=0.3)
+    assert partially_moving_segments(segments, matched, inlier, config) == [3]
+    # segment 1 (0.8) is a candidate once the upper ratio is above it; segment 2 has 4 outliers only
+    config = DetectionConfig(segment_outlier_ratio=0.9, min_segment_features=5, partial_outlier_ratio=0.3)
+    assert partially_moving_segments(segments, matched, inlier, config) == [1, 3]
+    config = DetectionConfig(segment_outlier_ratio=0.6, min_segment_features=7, partial_outlier_ratio=0.3)
+    assert partially_moving_segments(segments, matched, inlier, config) == []
+    config = DetectionConfig(segment_outlier_ratio=0.6, min_segment_features=5, partial_outlier_ratio=0.0)
+    assert partially_moving_segments(segments, matched, inlier, config) == []
 
 
 def test_outliers_must_exceed_what_the_frame_outlier_ratio_explains():

@@ -663,6 +663,32 @@ def test_object_that_turned_and_rests_is_detected(resting_turn_sequence, memory_
 
 
 @pytest.fixture(scope="module")
+def turned_about_itself_sequence(tmp_path_factory):
+    """Seed 9 of one jumping box (60 frames; the test uses the first 13): at frame 10 it turns
+    29 degrees about an axis through it and moves 5.5 cm. 9 of its 17 static matches stay
+    within the inlier threshold (near the axis), so its segment's outlier ratio is 0.47."""
+    root = tmp_path_factory.mktemp("objects") / "turned_about_itself"
+    generate_sequence(root, full_size_options(objects=1, seed=9))
+    return root
+
+
+@pytest.mark.parametrize("partial_ratio", [0.0, 0.3])
+def test_object_turned_about_itself_is_detected_by_all_its_matches(turned_about_itself_sequence, partial_ratio):
+    """detection.partial_outlier_ratio: a segment with too few outliers for detection by
+    outliers, whose matched features, inliers too, agree on one turn, moves: the box's map
+    starts at its motion (without the rule, 10 frames later)."""
+    root = turned_about_itself_sequence
+    first_motion = first_motion_frame(root, 1)
+    result = run(root, [f"detection.partial_outlier_ratio={partial_ratio}"],
+                 sequence=open_sequence(root, max_frames=first_motion + 3))
+    box_maps = frames_creating_maps_of(result, root, 1)
+    if partial_ratio:
+        assert box_maps == [first_motion]
+    else:
+        assert not box_maps
+
+
+@pytest.fixture(scope="module")
 def turned_over_its_place_sequence(tmp_path_factory):
     """Seed 3 of two objects jumping in the same frames (60 frames; the test uses the first
     14): at frame 10 the cylinder turns 35 degrees and comes to rest 8 cm away, over its old
