@@ -92,6 +92,19 @@ def outlier_significance(outliers: np.ndarray, matched: np.ndarray, base_ratio: 
     return binom.sf(np.asarray(outliers) - 1, np.asarray(matched), ratio)
 
 
+def _beyond_chance(stats: SegmentOutlierStats, matched: np.ndarray, inlier: np.ndarray,
+                   exclude: np.ndarray | None, config: DetectionConfig) -> np.ndarray:
+    """``(S,)`` bool: segments holding more outliers than the frame's overall outlier ratio
+    makes likely (:func:`outlier_significance` below ``config.significance``; all True when
+    that is 1), counting the matched measurements not in ``exclude``."""
+    if config.significance >= 1.0:
+        return np.ones(len(stats.matched), dtype=bool)
+    counted = np.asarray(matched, dtype=bool) & ~_mask(exclude, len(np.asarray(matched)), "exclude", False)
+    total = int(counted.sum())
+    base = float((counted & ~np.asarray(inlier, dtype=bool)).sum()) / total if total else 0.0
+    return outlier_significance(stats.outliers, stats.matched, base) < config.significance
+
+
 def detect_moving_segments(
     segments: Segments,
     matched: np.ndarray,
@@ -112,11 +125,8 @@ def detect_moving_segments(
     moving = (stats.outlier_ratio > config.segment_outlier_ratio) & (
         stats.matched >= config.min_segment_features
     )
-    if config.significance < 1.0 and moving.any():
-        counted = np.asarray(matched, dtype=bool) & ~_mask(exclude, len(np.asarray(matched)), "exclude", False)
-        total = int(counted.sum())
-        base = float((counted & ~np.asarray(inlier, dtype=bool)).sum()) / total if total else 0.0
-        moving &= outlier_significance(stats.outliers, stats.matched, base) < config.significance
+    if moving.any():
+        moving &= _beyond_chance(stats, matched, inlier, exclude, config)
     ids = np.flatnonzero(moving).tolist()
     if ids:
         logger.debug(
@@ -133,17 +143,21 @@ def partially_moving_segments(
     exclude: np.ndarray | None = None,
 ) -> list[int]:
     """Segments (ascending) with at least ``config.min_segment_features`` outliers whose
-    outlier ratio exceeds ``config.partial_outlier_ratio`` but not
-    ``config.segment_outlier_ratio``: an object that turned about an axis through it keeps
-    the features near the axis within the static inlier threshold. Such a segment moves only
-    if all its matched features agree on one rigid motion (left to the caller); a static one
-    with a few mismatches agrees on none but the static pose. None when the ratio is 0."""
+    outlier ratio exceeds ``config.partial_outlier_ratio`` (strictly) but not
+    ``config.segment_outlier_ratio``, and more of them than the frame's outlier ratio makes
+    likely (``config.significance``, as in :func:`detect_moving_segments`), ignoring the
+    measurements in ``exclude``: an object that turned about an axis through it keeps the
+    features near the axis within the static inlier threshold. Such a segment moves only if
+    all its matched features agree on one rigid motion (left to the caller); a static one
+    with a few mismatches agrees on none but the static pose. Empty when the ratio is 0."""
     if config.partial_outlier_ratio <= 0:
         return []
     stats = segment_outlier_stats(segments, matched, inlier, exclude)
     partial = ((stats.outlier_ratio > config.partial_outlier_ratio)
                & (stats.outlier_ratio <= config.segment_outlier_ratio)
                & (stats.outliers >= config.min_segment_features))
+    if partial.any():
+        partial &= _beyond_chance(stats, matched, inlier, exclude, config)
     return np.flatnonzero(partial).tolist()
 
 

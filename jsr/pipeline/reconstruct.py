@@ -934,16 +934,18 @@ class Reconstructor:
                          where_lost)
         violations, consistent = self._free_space(frame, measurements)
         by_outliers = self._rigidly_moved(frame, measurements, static, by_outliers, inliers)
-        # Segments with fewer outliers than that whose matched features, inliers too, agree on one
-        # rigid turn: an object that turned about itself keeps its features near the axis within
-        # the inlier threshold, and the others moved too little for the in-place test to tell
+        # Segments with an outlier ratio between detection.partial_outlier_ratio and
+        # detection.segment_outlier_ratio whose matched features, inliers too, agree on one rigid
+        # turn: an object that turned about itself keeps its features near the axis within the
+        # inlier threshold, and the others moved too little for the in-place test to tell
         # (synth_jump seed 9: a box turned 29 degrees, 9 of its 17 matches inliers, 8 of 8
         # outliers "in place"; not detected for 10 frames). The in-place turn's test decides.
-        partial = partially_moving_segments(segments, matched, inliers, self.config.detection,
-                                            exclude=assignment.point_owner > 0)
+        owned = assignment.point_owner > 0
+        partial = partially_moving_segments(segments, matched, inliers, self.config.detection, exclude=owned)
         if partial and self.config.detection.in_place_turn_degrees > 0:
             turned = self._rigidly_moved(frame, measurements, static, partial, inliers, with_inliers=True,
-                                         min_turn_degrees=self.config.detection.in_place_turn_degrees)
+                                         min_turn_degrees=self.config.detection.in_place_turn_degrees,
+                                         exclude=owned)
             by_outliers = sorted(set(by_outliers) | set(turned))
         if in_place and self.config.detection.in_place_turn_degrees > 0:
             # an object turning about itself keeps its features near where they were: the
@@ -1090,12 +1092,14 @@ class Reconstructor:
 
     def _rigidly_moved(self, frame: Frame, measurements: FrameMeasurements, static: StaticRegistration,
                        candidates: list[int], static_inliers: np.ndarray,
-                       min_turn_degrees: float | None = None, with_inliers: bool = False) -> list[int]:
+                       min_turn_degrees: float | None = None, with_inliers: bool = False,
+                       exclude: np.ndarray | None = None) -> list[int]:
         """The candidate segments whose static-map outliers agree on one rigid motion
         (``detection.require_rigid_motion``), grouped as touching regions. With
         ``min_turn_degrees``, only motions turning the region by at least that much count. With
         ``with_inliers``, the motion must explain ``WHOLE_TURN_MIN_SHARE`` of all their matched
-        3D features, static inliers too.
+        3D features, static inliers too. ``exclude`` ``(N,)`` bool: point measurements left out
+        (those already given to an object).
 
         An object that moved carries its old landmarks along: their matches are outliers of the
         camera pose but inliers of one other rigid transformation. Outliers from view-dependent
@@ -1109,10 +1113,13 @@ class Reconstructor:
         matched = static.matched
         three_d = matched.is_3d
         point_segment = segments.segment_of_points(len(measurements.points))
-        outlier_pairs = three_d & (with_inliers | ~static_inliers[matched.point_measurements])
+        # the pairs the motion is fitted to: the outliers (with_inliers: every matched 3D pair)
+        fitted_pairs = three_d & (with_inliers | ~static_inliers[matched.point_measurements])
+        if exclude is not None:
+            fitted_pairs &= ~exclude[matched.point_measurements]
         confirmed: list[int] = []
         for group in merge_adjacent_moving_segments(segments, candidates, self.config.detection.merge_gap_pixels):
-            in_group = outlier_pairs & np.isin(point_segment[matched.point_measurements], group)
+            in_group = fitted_pairs & np.isin(point_segment[matched.point_measurements], group)
             rows = np.flatnonzero(in_group[three_d])  # 3D pairs come first in the correspondences
             if len(rows) < self.config.detection.min_segment_features:
                 continue
@@ -1136,8 +1143,9 @@ class Reconstructor:
             relative = np.linalg.inv(static.result.transformation) @ motion.transformation
             moved = np.linalg.norm(relative[:3, 3])
             turned = np.degrees(rotation_angle(relative[:3, :3]))
-            logger.debug("frame %d: segments %s moved %.3f m, %.1f deg (%d of %d outliers agree)",
-                         measurements.frame_index, group, moved, turned, motion.num_inliers, len(rows))
+            logger.debug("frame %d: segments %s moved %.3f m, %.1f deg (%d of %d %s agree)",
+                         measurements.frame_index, group, moved, turned, motion.num_inliers, len(rows),
+                         "matches" if with_inliers else "outliers")
             detection = self.config.detection
             if not (moved >= detection.min_motion or turned >= detection.min_motion_degrees):
                 continue
@@ -2020,7 +2028,8 @@ class Reconstructor:
         """Static-map hygiene, geometric: a landmark of the static map that projects into
         this frame where the measured surface lies clearly *behind* it has lost its surface (an
         object it was on moved away). Seen through in ``objects.retire_after_vacated`` frames in
-        a row, and not a registration inlier meanwhile, it is retired. Only once some object
+        a row, and not a registration inlier meanwhile, it is retired ("in a row" counts the
+        frames that measure depth where it projects: its count survives frames out of view). Only once some object
         has been detected: before that nothing moved, and a landmark seen through is a depth
         edge or a colour/depth misregistration (measured: retiring those costs redkitchen300
         ATE). Even then, only when no pixel within ``objects.vacated_window_px`` of its
