@@ -922,8 +922,8 @@ class Reconstructor:
         matched = np.zeros(num_points, dtype=bool)
         matched[static.matched.point_measurements] = True
         inliers, _ = inlier_mask(static.matched, static.result, num_points, len(measurements.planes))
-        by_outliers = detect_moving_segments(segments, matched, inliers, self.config.detection,
-                                             exclude=assignment.point_owner > 0)
+        owned = assignment.point_owner > 0  # measurements already given to an object
+        by_outliers = detect_moving_segments(segments, matched, inliers, self.config.detection, exclude=owned)
         in_place = by_outliers
         by_outliers = self._not_in_place(measurements, static, by_outliers, inliers, report.T_w_c, keep_unknown=False)
         in_place = [s for s in in_place if s not in by_outliers]
@@ -934,25 +934,23 @@ class Reconstructor:
                          where_lost)
         violations, consistent = self._free_space(frame, measurements)
         by_outliers = self._rigidly_moved(frame, measurements, static, by_outliers, inliers)
-        # Segments with an outlier ratio between detection.partial_outlier_ratio and
-        # detection.segment_outlier_ratio whose matched features, inliers too, agree on one rigid
-        # turn: an object that turned about itself keeps its features near the axis within the
-        # inlier threshold, and the others moved too little for the in-place test to tell
-        # (synth_jump seed 9: a box turned 29 degrees, 9 of its 17 matches inliers, 8 of 8
-        # outliers "in place"; not detected for 10 frames). The in-place turn's test decides.
-        owned = assignment.point_owner > 0
-        partial = partially_moving_segments(segments, matched, inliers, self.config.detection, exclude=owned)
-        if partial and self.config.detection.in_place_turn_degrees > 0:
-            turned = self._rigidly_moved(frame, measurements, static, partial, inliers, with_inliers=True,
-                                         min_turn_degrees=self.config.detection.in_place_turn_degrees,
-                                         exclude=owned)
-            by_outliers = sorted(set(by_outliers) | set(turned))
-        if in_place and self.config.detection.in_place_turn_degrees > 0:
-            # an object turning about itself keeps its features near where they were: the
-            # in-place test cannot tell it from a look-alike, its one rigid turn can
-            turned = self._rigidly_moved(frame, measurements, static, in_place, inliers,
-                                         min_turn_degrees=self.config.detection.in_place_turn_degrees)
-            by_outliers = sorted(set(by_outliers) | set(turned))
+        turn_degrees = self.config.detection.in_place_turn_degrees
+        if turn_degrees > 0:
+            # An object turning about itself: one rigid turn of its region decides.
+            # Segments with an outlier ratio between detection.partial_outlier_ratio and
+            # detection.segment_outlier_ratio, when their matched features, inliers too, agree on
+            # it: the features near the axis stay within the inlier threshold, and the others
+            # moved too little for the in-place test to tell (synth_jump seed 9: a box turned 29
+            # degrees, 9 of its 17 matches inliers, 8 of 8 outliers "in place"; not detected for
+            # 10 frames).
+            partial = partially_moving_segments(segments, matched, inliers, self.config.detection, exclude=owned)
+            turned_whole = self._rigidly_moved(frame, measurements, static, partial, inliers, with_inliers=True,
+                                               min_turn_degrees=turn_degrees, exclude=owned)
+            # Segments of outliers that the in-place test found near where they were: it cannot
+            # tell the object's own features from a look-alike's, the turn of their outliers can.
+            turned_in_place = self._rigidly_moved(frame, measurements, static, in_place, inliers,
+                                                  min_turn_degrees=turn_degrees)
+            by_outliers = sorted(set(by_outliers) | set(turned_whole) | set(turned_in_place))
         by_free_space = self._free_space_segments(measurements, violations, consistent, inliers)
         by_free_space = self._not_in_place(measurements, static, by_free_space, inliers, report.T_w_c,
                                            keep_unknown=True)
@@ -2029,13 +2027,14 @@ class Reconstructor:
         this frame where the measured surface lies clearly *behind* it has lost its surface (an
         object it was on moved away). Seen through in ``objects.retire_after_vacated`` frames in
         a row, and not a registration inlier meanwhile, it is retired ("in a row" counts the
-        frames that measure depth where it projects: its count survives frames out of view). Only once some object
-        has been detected: before that nothing moved, and a landmark seen through is a depth
-        edge or a colour/depth misregistration (measured: retiring those costs redkitchen300
-        ATE). Even then, only when no pixel within ``objects.vacated_window_px`` of its
-        projection is near it (its surface is not just beside) and at least
-        ``objects.vacated_cluster_size`` other landmarks within ``objects.vacated_cluster_radius``
-        are seen through too (an object's old place is an area)."""
+        frames that measure depth where it projects: its count survives frames out of view).
+        Only once some object has been detected: before that nothing moved, and a landmark seen
+        through is a depth edge or a colour/depth misregistration (measured: retiring those
+        costs redkitchen300 ATE). Even then, only when no pixel within
+        ``objects.vacated_window_px`` of its projection is near it (its surface is not just
+        beside) and at least ``objects.vacated_cluster_size`` other landmarks within
+        ``objects.vacated_cluster_radius`` are seen through too (an object's old place is an
+        area)."""
         config = self.config.objects
         if config.retire_after_vacated <= 0 or not self.static_map.keyframes:
             return
