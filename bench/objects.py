@@ -41,10 +41,9 @@ frames used; "moves" = its true T_w_o changes by > 1 mm or > 0.5 deg from the pr
    against the true T_w_o on common frames, as ``jsr.evaluate.object_pose_error`` does: poses
    compared in the camera frame (C = inv(T_w_c) T_w_o, which needs no world alignment) after removing the constant offset between the estimated and true object frames
    (one offset per map), the translation error taken at the true object's centre; translation RMSE (cm) and rotation RMSE (deg) pooled over the tracked
-   frames of all its maps (per map in the JSON). The estimated T_w_c used is the frame's
-   pose at the time (``FrameReport.T_w_c``), the one T_w_o was composed with, so C_est is the
-   object tracker's own estimate (bundle adjustment of the static map moves camera poses later
-   but not the recorded object poses).
+   frames of all its maps (per map in the JSON). The poses scored are those the run writes:
+   T_w_c of ``camera.tum`` and T_w_o of ``objects/object_K/trajectory.tum``
+   (``Reconstructor.object_trajectory``), both after bundle adjustment of their maps.
 4. tracked: share of the frames from the object's first motion on in which it is visible
    (> 2000 labelled pixels) and some map matched to it is in ``FrameReport.objects_tracked``.
 5. mask precision / recall: pixels with mask > 0 against label > 0, summed over all frames
@@ -237,6 +236,7 @@ class RunRecord:
     merged_into: dict[int, int] = field(default_factory=dict)  # object id -> the map it was merged into
     seconds: float = 0.0
     poses: dict[int, np.ndarray] = field(default_factory=dict)  # frame index -> bundle-adjusted T_w_c
+    object_poses: dict[int, dict[int, np.ndarray]] = field(default_factory=dict)  # map K -> frame -> written T_w_o
     static_map: object = None
     object_maps: list = field(default_factory=list)
 
@@ -273,6 +273,10 @@ def run_pipeline(sequence, config, labels_dir: Path | None) -> RunRecord:
         record.poses = {r.frame_index: reconstructor.current_pose(r) for r in record.reports if r.tracked}
         record.static_map = reconstructor.static_map
         record.object_maps = list(reconstructor.object_maps)
+        for object_map in record.object_maps:
+            _, written = reconstructor.object_trajectory(object_map)
+            record.object_poses[object_map.object_id] = {
+                index: T_w_o for (index, _, _), T_w_o in zip(object_map.trajectory, written)}
         record.merged_into = dict(reconstructor.merged_into)
         resolve_merged_ids(record)
     finally:
@@ -387,7 +391,6 @@ def score(record: RunRecord, sequence, seq_dir: Path, max_difference: float) -> 
                      "overlap_pixels": overlap, "mask_pixels": int(confusion[K].sum()) if K < LABEL_BINS else 0,
                      "frames_tracked": len(object_map.trajectory), "keyframes": len(object_map.keyframes),
                      "active_landmarks": int(object_map.points.active_count)})
-    by_id = {m.object_id: m for m in record.object_maps}
 
     objects = []
     for k in true_ids:
@@ -408,8 +411,8 @@ def score(record: RunRecord, sequence, seq_dir: Path, max_difference: float) -> 
         row["pose"], row["pose_per_map"] = None, []
         translation_errors, rotation_errors = [], []
         for K in row["maps"]:
-            rows = [(reports[i].T_w_c, T_w_o, gt_camera[position[i]], true_objects[k][position[i]])
-                    for i, _, T_w_o in by_id[K].trajectory if i in reports and reports[i].T_w_c is not None]
+            rows = [(record.poses[i], T_w_o, gt_camera[position[i]], true_objects[k][position[i]])
+                    for i, T_w_o in record.object_poses[K].items() if i in record.poses]
             rows = [r for r in rows if r[2] is not None and r[3] is not None]
             if not rows:
                 continue

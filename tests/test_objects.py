@@ -102,6 +102,57 @@ def test_object_pose_follows_the_true_object(jump_sequence, jump_run):
     assert error.rotation_rmse_deg < 2.0
 
 
+def _adjusted(object_map, adjustments):
+    """Context: keyframe ``k``'s ``T_map_cam`` left-multiplied by ``adjustments[k]`` (what
+    bundle adjustment would have done to it), restored afterwards."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def context():
+        originals = [keyframe.T_map_cam.copy() for keyframe in object_map.keyframes]
+        for keyframe, adjustment in zip(object_map.keyframes, adjustments):
+            keyframe.T_map_cam = adjustment @ keyframe.T_map_cam
+        try:
+            yield
+        finally:
+            for keyframe, original in zip(object_map.keyframes, originals):
+                keyframe.T_map_cam = original
+
+    return context()
+
+
+def test_object_trajectory_moves_with_its_bundle_adjusted_keyframes(jump_run):
+    """The written object poses follow what bundle adjustment did to the object's keyframes:
+    all of them when all moved alike; one rest of the object as a whole when one of its
+    keyframes moved; frames nearer other keyframes not at all."""
+    from scipy.spatial.transform import Rotation
+
+    reconstructor = jump_run.reconstructor
+    object_map = reconstructor.object_maps[0]
+    assert len(object_map.keyframes) >= 3
+    _, before = reconstructor.object_trajectory(object_map)
+    adjustment = np.eye(4)  # in the object frame
+    adjustment[:3, :3] = Rotation.from_rotvec([0.0, 0.03, 0.01]).as_matrix()
+    adjustment[:3, 3] = [0.01, 0.0, -0.02]
+    with _adjusted(object_map, [adjustment] * len(object_map.keyframes)):
+        _, after = reconstructor.object_trajectory(object_map)
+    # T_w_o = T_w_c inv(T_o_c): the adjustment of T_o_c is undone on the object's side
+    np.testing.assert_allclose(after, before @ np.linalg.inv(adjustment), atol=1e-9)
+
+    last = len(object_map.keyframes) - 1
+    with _adjusted(object_map, [np.eye(4)] * last + [adjustment]):
+        _, after = reconstructor.object_trajectory(object_map)
+    changes = np.linalg.inv(before) @ after  # per frame, on the object's side
+    moved = ~np.all(np.isclose(changes, np.eye(4), atol=1e-12), axis=(1, 2))
+    frames = np.array([frame_index for frame_index, _, _ in object_map.trajectory])
+    assert moved[frames == object_map.keyframes[last].frame_index].all()
+    assert moved.any() and not moved.all()
+    # the frames moved are one rest of the object (one world pose as tracked), moved as one
+    tracked = np.array([T_w_o for _, _, T_w_o in object_map.trajectory])
+    np.testing.assert_allclose(tracked[moved], np.broadcast_to(tracked[moved][0], tracked[moved].shape), atol=1e-9)
+    np.testing.assert_allclose(changes[moved], np.broadcast_to(changes[moved][0], changes[moved].shape), atol=1e-9)
+
+
 def test_masks_agree_with_labels(jump_sequence, jump_run):
     sequence = jump_run.sequence
     true_positive = predicted = actual = 0
@@ -345,8 +396,15 @@ def test_two_maps_of_one_object_register_and_merge():
     result = register_maps(first, second, config, np.random.default_rng(0))
     assert result is not None and result.success and result.num_inliers >= 25
     np.testing.assert_allclose(result.transformation, T_1_2, atol=0.01)
+    second.keyframes[0].T_map_cam_tracked = np.eye(4)  # as tracked; bundle adjustment moved it since
+    second.keyframes[0].T_map_cam = T_1_2.copy()
     merge_object_maps(first, second, result.transformation)
     assert len(first.keyframes) == 2 and len(first.points) == 110
+    moved_in = first.keyframes[1]  # map 2's keyframe (frame 20), after map 1's (frame 10)
+    assert moved_in.frame_index == 20
+    # both poses of the keyframe it brought are in map 1's frame now
+    np.testing.assert_allclose(moved_in.T_map_cam_tracked, result.transformation, atol=1e-9)
+    np.testing.assert_allclose(moved_in.T_map_cam, result.transformation @ T_1_2, atol=1e-9)
     np.testing.assert_allclose(first.points.positions[60:], box[30:], atol=0.01)  # in map 1's frame
     # a different object (other descriptors) does not register
     other = _object_map(3, _box_landmarks(rng, 50) + [0, 0, 1.5], rng.random((50, 128)))

@@ -169,6 +169,8 @@ class Keyframe:
     ``camera_points``: ``(K, 3)`` their camera-frame positions (NaN for 2D points), and
     ``pixels`` ``(K, 2)``, ``sigma_z`` ``(K,)``: what bundle adjustment needs.
     ``plane_landmarks``/``camera_planes``: the same for planes (``(P,)`` and ``(P, 4)``).
+    ``T_map_cam_tracked``: ``T_map_cam`` as tracking measured it, before any bundle adjustment
+    (a copy of ``T_map_cam`` unless given): how far bundle adjustment moved the keyframe.
     """
 
     keyframe_id: int
@@ -182,6 +184,11 @@ class Keyframe:
     sigma_z: np.ndarray
     plane_landmarks: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     camera_planes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    T_map_cam_tracked: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.T_map_cam_tracked is None:
+            self.T_map_cam_tracked = np.array(self.T_map_cam, dtype=float)
 
 
 class Map:

@@ -588,7 +588,8 @@ def merge_object_maps(target: ObjectMap, source: ObjectMap, T_target_source: np.
             point_landmarks=new_ids[keyframe.point_landmarks], camera_points=keyframe.camera_points,
             pixels=keyframe.pixels, sigma_z=keyframe.sigma_z,
             plane_landmarks=new_plane_ids[keyframe.plane_landmarks] if len(keyframe.plane_landmarks) else
-            keyframe.plane_landmarks, camera_planes=keyframe.camera_planes))
+            keyframe.plane_landmarks, camera_planes=keyframe.camera_planes,
+            T_map_cam_tracked=T_target_source @ keyframe.T_map_cam_tracked))
     target_keyframe_position = {keyframe.keyframe_id: i for i, keyframe in enumerate(target.keyframes)}
     order = sorted(range(len(keyframes)), key=lambda i: (keyframes[i].frame_index, i))
     new_keyframe_id = {position: rank for rank, position in enumerate(order)}

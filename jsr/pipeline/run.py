@@ -14,7 +14,8 @@ Layout written (``DIR``)::
     static/keyframes.tum    T_w_c of the static map's keyframes
     static/landmarks.ply    active point landmarks of the static map (world frame)
     static/cloud.ply, static/mesh.ply   dense model fused from the keyframes (end of run)
-    objects/object_K/trajectory.tum      T_w_o of object K in every frame it was tracked (world frame)
+    objects/object_K/trajectory.tum      T_w_o of object K in every frame it was tracked (world frame, after
+                                         bundle adjustment of the static map and of object K's map)
     objects/object_K/keyframes.tum       T_o_c of its keyframes (object frame = camera frame at detection)
     objects/object_K/landmarks.ply       its active point landmarks (object frame)
     objects/object_K/cloud.ply, mesh.ply its dense model (object frame; end of run)
