@@ -18,7 +18,7 @@ Synthetic sequences are 640x480 (``--size``), ``--frames`` frames (default 60), 
 (``--seed``) into a temporary folder; ``--seed 1,2,3`` runs each synthetic sequence once per
 seed, one column each (seed 1 alone hid misses that seeds 2 and 3 show; the rules were tuned
 on seeds 1-5, so check a change on unseen ones too, e.g. ``--seed 6,7,8,9``: in December 2026
-they missed a target in 7 of 16 sequences against 1 of 20 for seeds 1-5). The seed fixes the camera path and the static room
+they missed a target in 6 of 16 sequences against 1 of 20 for seeds 1-5). The seed fixes the camera path and the static room
 independently of the objects, so the ``--objects 0`` sequence with the same seed is exactly the
 same video without the objects (checked: identical camera poses, identical static pixels); it
 is the "without objects" twin for the ATE ratio. For kitchen_box120 the twin is

@@ -457,9 +457,21 @@ def load_config(path: Path | None = None, overrides: list[str] | tuple[str, ...]
     for override in overrides:
         key, value = parse_override(override)
         _apply_mapping(config, _nest(key, value), "")
+    _check_relations(config)
+    return config
+
+
+def _check_relations(config: Config) -> None:
+    """Keys whose valid values depend on another key (each key alone is checked on reading)."""
     if config.input.min_depth >= config.input.max_depth:
         raise ConfigError("config key 'input.min_depth' must be smaller than 'input.max_depth'")
-    return config
+    detection = config.detection
+    # a partial ratio at or above the full one would leave no segment between them: the rule
+    # would be off without saying so
+    if 0 < detection.partial_outlier_ratio >= detection.segment_outlier_ratio:
+        raise ConfigError(f"config key 'detection.partial_outlier_ratio' ({detection.partial_outlier_ratio}) must be "
+                          f"below 'detection.segment_outlier_ratio' ({detection.segment_outlier_ratio}), or 0 to "
+                          "turn the whole-segment turn test off")
 
 
 def config_to_yaml(config: Config) -> str:
