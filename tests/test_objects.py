@@ -153,6 +153,39 @@ def test_object_trajectory_moves_with_its_bundle_adjusted_keyframes(jump_run):
     np.testing.assert_allclose(changes[moved], np.broadcast_to(changes[moved][0], changes[moved].shape), atol=1e-9)
 
 
+
+def test_object_trajectory_averages_the_corrections_of_one_rest(jump_run):
+    """Within one rest of the object (one world pose as tracked) holding several keyframes,
+    the written poses move by the mean of what bundle adjustment did to those keyframes."""
+    from scipy.spatial.transform import Rotation
+
+    reconstructor = jump_run.reconstructor
+    object_map = reconstructor.object_maps[0]
+    tracked = {frame_index: T_w_o for frame_index, _, T_w_o in object_map.trajectory}
+    rests: dict[bytes, list[int]] = {}  # tracked world pose -> its keyframes (positions)
+    for position, keyframe in enumerate(object_map.keyframes):
+        if keyframe.frame_index in tracked:
+            rests.setdefault(np.round(tracked[keyframe.frame_index], 9).tobytes(), []).append(position)
+    rest = max(rests.values(), key=len)
+    assert len(rest) >= 2, "the fixture needs a rest with two keyframes"
+    adjustment = np.eye(4)
+    adjustment[:3, :3] = Rotation.from_rotvec([0.02, -0.01, 0.04]).as_matrix()
+    adjustment[:3, 3] = [0.006, -0.004, 0.01]
+    # from the keyframes as tracked: no correction but this one adjustment of one keyframe
+    as_tracked = [keyframe.T_map_cam_tracked @ np.linalg.inv(keyframe.T_map_cam) for keyframe in object_map.keyframes]
+    with _adjusted(object_map, as_tracked):
+        _, before = reconstructor.object_trajectory(object_map)
+    with _adjusted(object_map, [adjustment @ T if position == rest[0] else T
+                                for position, T in enumerate(as_tracked)]):
+        _, after = reconstructor.object_trajectory(object_map)
+    mean = np.eye(4)
+    mean[:3, :3] = Rotation.from_matrix([adjustment[:3, :3]] + [np.eye(3)] * (len(rest) - 1)).mean().as_matrix()
+    mean[:3, 3] = adjustment[:3, 3] / len(rest)
+    rest_pose = tracked[object_map.keyframes[rest[0]].frame_index]
+    in_rest = np.array([np.allclose(T_w_o, rest_pose, atol=1e-9) for _, _, T_w_o in object_map.trajectory])
+    np.testing.assert_allclose(after[in_rest], before[in_rest] @ np.linalg.inv(mean), atol=1e-9)
+    np.testing.assert_allclose(after[~in_rest], before[~in_rest], atol=1e-12)
+
 def test_masks_agree_with_labels(jump_sequence, jump_run):
     sequence = jump_run.sequence
     true_positive = predicted = actual = 0

@@ -2215,7 +2215,7 @@ class Reconstructor:
         run_bounds = list(zip(run_starts, run_starts[1:] + [len(entries)]))
         timestamps, poses = [], []
         for start, stop in run_bounds:
-            frames = [entries[i][0] for i in range(start, stop)]
+            frames = {entries[i][0] for i in range(start, stop)}
             in_run = [k for k, frame_index in enumerate(keyframe_frames) if frame_index in frames]
             run_correction = _mean_transform([corrections[k] for k in in_run]) if in_run else None
             for frame_index, timestamp, T_w_o in entries[start:stop]:

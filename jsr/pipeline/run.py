@@ -15,7 +15,10 @@ Layout written (``DIR``)::
     static/landmarks.ply    active point landmarks of the static map (world frame)
     static/cloud.ply, static/mesh.ply   dense model fused from the keyframes (end of run)
     objects/object_K/trajectory.tum      T_w_o of object K in every frame it was tracked (world frame, after
-                                         bundle adjustment of the static map and of object K's map)
+                                         bundle adjustment of the static map and of object K's map; a rest
+                                         takes the mean correction of its keyframes, so at the detection
+                                         frame T_w_o may differ from T_w_c by the mean's share of the
+                                         others' corrections, typically under a degree and a centimetre)
     objects/object_K/keyframes.tum       T_o_c of its keyframes (object frame = camera frame at detection)
     objects/object_K/landmarks.ply       its active point landmarks (object frame)
     objects/object_K/cloud.ply, mesh.ply its dense model (object frame; end of run)
@@ -114,8 +117,8 @@ class ResultsWriter:
                 self.out_dir / map_folder(object_map) / "trajectory.tum",
                 timestamps,
                 poses,
-                header=f"object {object_map.object_id}: object-to-world T_w_o in every frame it was tracked; "
-                "world = first camera frame, object frame = camera frame at detection",
+                header=f"object {object_map.object_id}: object-to-world T_w_o in every frame it was tracked "
+                "(after bundle adjustment); world = first camera frame, object frame = camera frame at detection",
             )
 
     def write_mask(self, report: FrameReport) -> None:
