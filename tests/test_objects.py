@@ -186,6 +186,53 @@ def test_object_trajectory_averages_the_corrections_of_one_rest(jump_run):
     np.testing.assert_allclose(after[in_rest], before[in_rest] @ np.linalg.inv(mean), atol=1e-9)
     np.testing.assert_allclose(after[~in_rest], before[~in_rest], atol=1e-12)
 
+
+def test_object_trajectory_counts_only_adjustments_made_after_a_frame_was_tracked(jump_run):
+    """A frame whose rest holds no keyframe is corrected by what bundle adjustment did, after
+    the frame was tracked, to the map's latest keyframe of that time: an adjustment from
+    before (which its registration already saw) does not count twice."""
+    from scipy.spatial.transform import Rotation
+
+    reconstructor = jump_run.reconstructor
+    object_map = reconstructor.object_maps[0]
+    keyframe_at = {keyframe.frame_index: keyframe for keyframe in object_map.keyframes}
+    poses = [T_w_o for _, _, T_w_o in object_map.trajectory]
+    alone = [i for i in range(1, len(poses) - 1)  # a rest of one frame: the object moved before and after
+             if not np.allclose(poses[i], poses[i - 1], atol=1e-9)
+             and not np.allclose(poses[i], poses[i + 1], atol=1e-9)]
+    # such a frame that is a keyframe, anchored to an earlier keyframe: without its own
+    # keyframe it is a rest with none
+    position = next(i for i in alone if object_map.trajectory[i][0] in keyframe_at
+                    and object_map.trajectory_anchors[object_map.trajectory[i][0]][0].frame_index
+                    < object_map.trajectory[i][0])
+    frame = object_map.trajectory[position][0]
+    anchor_keyframe, T_map_cam_then = object_map.trajectory_anchors[frame]
+    adjustment = np.eye(4)
+    adjustment[:3, :3] = Rotation.from_rotvec([-0.02, 0.03, 0.01]).as_matrix()
+    adjustment[:3, 3] = [0.0, 0.01, 0.005]
+    all_keyframes = object_map.keyframes
+    object_map.keyframes = [keyframe for keyframe in all_keyframes if keyframe.frame_index != frame]
+    try:
+        _, before = reconstructor.object_trajectory(object_map)
+        original = anchor_keyframe.T_map_cam.copy()
+        anchor_keyframe.T_map_cam = adjustment @ original  # adjusted after the frame was tracked
+        _, after = reconstructor.object_trajectory(object_map)
+        np.testing.assert_allclose(after[position], before[position] @ np.linalg.inv(adjustment), atol=1e-9)
+        # all of it done before the frame was tracked (its registration saw the keyframe where
+        # it is now): T_o_c stays as tracked, whatever the keyframe's whole correction
+        assert not np.allclose(anchor_keyframe.T_map_cam, anchor_keyframe.T_map_cam_tracked, atol=1e-6)
+        object_map.trajectory_anchors[frame] = (anchor_keyframe, anchor_keyframe.T_map_cam.copy())
+        _, seen = reconstructor.object_trajectory(object_map)
+        report = next(report for report in reconstructor.reports if report.frame_index == frame)
+        T_w_o_tracked = object_map.trajectory[position][2]
+        np.testing.assert_allclose(
+            seen[position], reconstructor.current_pose(report) @ np.linalg.inv(report.T_w_c) @ T_w_o_tracked,
+            atol=1e-9)
+    finally:
+        anchor_keyframe.T_map_cam = original
+        object_map.trajectory_anchors[frame] = (anchor_keyframe, T_map_cam_then)
+        object_map.keyframes = all_keyframes
+
 def test_masks_agree_with_labels(jump_sequence, jump_run):
     sequence = jump_run.sequence
     true_positive = predicted = actual = 0
@@ -431,6 +478,9 @@ def test_two_maps_of_one_object_register_and_merge():
     np.testing.assert_allclose(result.transformation, T_1_2, atol=0.01)
     second.keyframes[0].T_map_cam_tracked = np.eye(4)  # as tracked; bundle adjustment moved it since
     second.keyframes[0].T_map_cam = T_1_2.copy()
+    second.trajectory.append((21, 2.1, np.eye(4)))  # tracked after map 2's keyframe, then at T_1_2
+    second.trajectory_anchors[21] = (second.keyframes[0], T_1_2.copy())
+    first.trajectory_anchors[10] = (first.keyframes[0], np.eye(4))
     merge_object_maps(first, second, result.transformation)
     assert len(first.keyframes) == 2 and len(first.points) == 110
     moved_in = first.keyframes[1]  # map 2's keyframe (frame 20), after map 1's (frame 10)
@@ -438,6 +488,13 @@ def test_two_maps_of_one_object_register_and_merge():
     # both poses of the keyframe it brought are in map 1's frame now
     np.testing.assert_allclose(moved_in.T_map_cam_tracked, result.transformation, atol=1e-9)
     np.testing.assert_allclose(moved_in.T_map_cam, result.transformation @ T_1_2, atol=1e-9)
+    # its frames' anchors follow it: the keyframe in map 1, its pose then in map 1's frame
+    assert [index for index, _, _ in first.trajectory] == [10, 20, 21]
+    assert sorted(first.trajectory_anchors) == [10, 21]
+    keyframe, T_map_cam_then = first.trajectory_anchors[21]
+    assert keyframe is moved_in
+    np.testing.assert_allclose(T_map_cam_then, result.transformation @ T_1_2, atol=1e-9)
+    assert first.trajectory_anchors[10][0] is first.keyframes[0]
     np.testing.assert_allclose(first.points.positions[60:], box[30:], atol=0.01)  # in map 1's frame
     # a different object (other descriptors) does not register
     other = _object_map(3, _box_landmarks(rng, 50) + [0, 0, 1.5], rng.random((50, 128)))

@@ -31,7 +31,7 @@ from jsr.pipeline.association import (
     match_frame_guided,
     match_frame_to_map,
 )
-from jsr.pipeline.maps import Map
+from jsr.pipeline.maps import Keyframe, Map
 from jsr.pipeline.matching import match_descriptors
 from jsr.pipeline.measurements import FrameMeasurements
 from jsr.pipeline.registration import Correspondences, RegistrationResult, register
@@ -46,7 +46,9 @@ class ObjectMap(Map):
     ``segment_landmarks[(keyframe_id, segment)]`` holds the point landmark ids of each segment
     the object received in its keyframes: the units of segment-based registration, whose VLADs
     live in the reconstructor's :class:`~jsr.pipeline.vlad.SegmentIndex`.
-    ``trajectory`` lists ``(frame_index, timestamp, T_w_o)`` of the frames it was tracked in.
+    ``trajectory`` lists ``(frame_index, timestamp, T_w_o)`` of the frames it was tracked in;
+    ``trajectory_anchors[frame_index]`` the map's latest keyframe when that frame was tracked
+    and its ``T_map_cam`` then ``(4, 4)``: how far bundle adjustment moved the map since.
     """
 
     def __init__(self, object_id: int, created_at_frame: int):
@@ -62,6 +64,7 @@ class ObjectMap(Map):
         self.lost = False  # not tracked in the previous frame: relocalise against the whole map
         self.last_tracked_frame = created_at_frame  # the latest frame it was tracked in (camera tracked or not)
         self.trajectory: list[tuple[int, float, np.ndarray]] = []
+        self.trajectory_anchors: dict[int, tuple[Keyframe, np.ndarray]] = {}
         self.frames_tracked = 0
 
 
@@ -565,7 +568,6 @@ def merge_object_maps(target: ObjectMap, source: ObjectMap, T_target_source: np.
     Returns ``(L_source,)`` the new landmark id of every ``source`` landmark.
     """
     from jsr.geometry import transform_planes
-    from jsr.pipeline.maps import Keyframe
 
     points = source.points
     new_ids = target.points.add(
@@ -604,8 +606,16 @@ def merge_object_maps(target: ObjectMap, source: ObjectMap, T_target_source: np.
     target.segment_landmarks = segments
     by_frame = {index: (index, timestamp, T_w_o @ np.linalg.inv(T_target_source))
                 for index, timestamp, T_w_o in source.trajectory}
+    target_frames = {index for index, _, _ in target.trajectory}
     by_frame.update({index: (index, timestamp, T_w_o) for index, timestamp, T_w_o in target.trajectory})
     target.trajectory = [by_frame[index] for index in sorted(by_frame)]
+    # the source's anchors follow its keyframes into the target (target's entries win, as above)
+    moved_keyframe = {id(keyframe): keyframes[source_keyframe_position[keyframe.keyframe_id]]
+                      for keyframe in source.keyframes}
+    anchors = {index: (moved_keyframe[id(keyframe)], T_target_source @ T_map_cam)
+               for index, (keyframe, T_map_cam) in source.trajectory_anchors.items() if index not in target_frames}
+    anchors.update(target.trajectory_anchors)
+    target.trajectory_anchors = anchors
     target.frames_tracked = len(target.trajectory)
     target.created_at_frame = min(target.created_at_frame, source.created_at_frame)
     return new_ids

@@ -2128,6 +2128,9 @@ class Reconstructor:
             object_map.last_T_w_o = T_w_o
             object_map.last_pose_registered = not outcome.pose_from_surface
             object_map.trajectory.append((frame.index, frame.timestamp, T_w_o))
+            if object_map.keyframes:  # what bundle adjustment does to the map from now on applies to T_o_c
+                latest = object_map.keyframes[-1]
+                object_map.trajectory_anchors[frame.index] = (latest, latest.T_map_cam.copy())
         points, planes = measurements.points, measurements.planes
         own_points = np.flatnonzero(assignment.point_owner == object_map.object_id)
         landmark_of = inlier_landmarks(matched, result, len(points))
@@ -2197,7 +2200,11 @@ class Reconstructor:
         tracking measured it, is corrected by what bundle adjustment changed in the object's
         keyframes (:func:`_keyframe_correction`): the mean correction of the keyframes taken
         while the object rested where it is (tracking kept one world pose), so that it stays
-        at one place there; else that of the keyframe nearest in time.
+        at one place there; else what bundle adjustment did, since the first frame of the rest
+        (or the frame itself, when the object moved), to the map's latest keyframe of that time
+        (``trajectory_anchors``: the pose was registered against the map as it was then,
+        already refined by earlier runs; a keyframe's whole correction would count those runs
+        twice); else (no anchor) the correction of the keyframe nearest in time.
 
         Why: a registration right after a jump sees few of the map's landmarks and lands a
         degree or two off, and the object at rest keeps that pose; the keyframes taken there
@@ -2218,6 +2225,10 @@ class Reconstructor:
             frames = {entries[i][0] for i in range(start, stop)}
             in_run = [k for k, frame_index in enumerate(keyframe_frames) if frame_index in frames]
             run_correction = _mean_transform([corrections[k] for k in in_run]) if in_run else None
+            anchor = object_map.trajectory_anchors.get(entries[start][0])  # when the kept pose was registered
+            if run_correction is None and anchor is not None:
+                keyframe, T_map_cam_then = anchor
+                run_correction = keyframe.T_map_cam @ np.linalg.inv(T_map_cam_then)
             for frame_index, timestamp, T_w_o in entries[start:stop]:
                 report = reports.get(frame_index)
                 if report is not None and report.tracked:
