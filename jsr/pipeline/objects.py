@@ -67,6 +67,14 @@ class ObjectMap(Map):
         self.trajectory_anchors: dict[int, tuple[Keyframe, np.ndarray]] = {}
         self.frames_tracked = 0
 
+    def record_pose(self, frame_index: int, timestamp: float, T_w_o: np.ndarray) -> None:
+        """Append ``T_w_o`` ``(4, 4)`` to the trajectory, anchored to the latest keyframe as it
+        is now (what bundle adjustment does to the map from now on applies to this pose)."""
+        self.trajectory.append((frame_index, timestamp, T_w_o))
+        if self.keyframes:
+            latest = self.keyframes[-1]
+            self.trajectory_anchors[frame_index] = (latest, latest.T_map_cam.copy())
+
 
 @dataclass
 class ObjectTrackingResult:

@@ -240,11 +240,11 @@ class FrameAssignment:
     not_object_pixels: np.ndarray | None = None  # (H, W) bool: pixels of object segments left out (mixed segments)
 
 
-def _keyframe_correction(keyframe) -> np.ndarray:
-    """``(4, 4)`` what bundle adjustment did to a keyframe, in its map's frame:
-    ``T_map_cam @ inv(T_map_cam_tracked)``, to left-multiply a pose measured against the map
-    as it was when the keyframe was taken."""
-    return keyframe.T_map_cam @ np.linalg.inv(keyframe.T_map_cam_tracked)
+def _keyframe_correction(keyframe, since: np.ndarray | None = None) -> np.ndarray:
+    """``(4, 4)`` what bundle adjustment did to a keyframe, in its map's frame, since it was
+    at ``since`` (its ``T_map_cam`` then; default: as tracked, ``T_map_cam_tracked``):
+    ``T_map_cam @ inv(since)``, to left-multiply a pose measured against the map as it was then."""
+    return keyframe.T_map_cam @ np.linalg.inv(keyframe.T_map_cam_tracked if since is None else since)
 
 
 def _mean_transform(transforms: list[np.ndarray]) -> np.ndarray:
@@ -1765,7 +1765,7 @@ class Reconstructor:
         self._index_segments(object_map, keyframe, measurements, segment_ids)
         object_map.last_T_o_c = np.eye(4)
         object_map.last_T_w_o = np.array(T_w_c, dtype=float)
-        object_map.trajectory.append((frame.index, frame.timestamp, object_map.last_T_w_o))
+        object_map.record_pose(frame.index, frame.timestamp, object_map.last_T_w_o)
         object_map.frames_tracked = 1
         logger.info("frame %d: object %d detected (%d segments, %d points, %d planes)", frame.index, object_id,
                     len(segment_ids), len(point_ids), len(plane_ids))
@@ -2127,10 +2127,7 @@ class Reconstructor:
             T_w_o = report.T_w_c @ np.linalg.inv(T_o_c)
             object_map.last_T_w_o = T_w_o
             object_map.last_pose_registered = not outcome.pose_from_surface
-            object_map.trajectory.append((frame.index, frame.timestamp, T_w_o))
-            if object_map.keyframes:  # what bundle adjustment does to the map from now on applies to T_o_c
-                latest = object_map.keyframes[-1]
-                object_map.trajectory_anchors[frame.index] = (latest, latest.T_map_cam.copy())
+            object_map.record_pose(frame.index, frame.timestamp, T_w_o)
         points, planes = measurements.points, measurements.planes
         own_points = np.flatnonzero(assignment.point_owner == object_map.object_id)
         landmark_of = inlier_landmarks(matched, result, len(points))
@@ -2204,7 +2201,7 @@ class Reconstructor:
         (or the frame itself, when the object moved), to the map's latest keyframe of that time
         (``trajectory_anchors``: the pose was registered against the map as it was then,
         already refined by earlier runs; a keyframe's whole correction would count those runs
-        twice); else (no anchor) the correction of the keyframe nearest in time.
+        twice).
 
         Why: a registration right after a jump sees few of the map's landmarks and lands a
         degree or two off, and the object at rest keeps that pose; the keyframes taken there
@@ -2212,32 +2209,28 @@ class Reconstructor:
         depth noise: 2.4 degrees as tracked, 0.6 at the keyframes). One keyframe alone can be
         off about a symmetry axis that its few landmarks hardly fix (a cylinder's)."""
         reports = {report.frame_index: report for report in self.reports}
-        keyframes = object_map.keyframes
-        keyframe_frames = np.array([keyframe.frame_index for keyframe in keyframes])
-        corrections = [_keyframe_correction(keyframe) for keyframe in keyframes]
+        keyframe_frames = [keyframe.frame_index for keyframe in object_map.keyframes]
+        corrections = [_keyframe_correction(keyframe) for keyframe in object_map.keyframes]
         entries = object_map.trajectory
         # runs of consecutive entries at one world pose: the object at rest, as tracking kept it
-        run_starts = [0] + [i for i in range(1, len(entries))
-                            if not np.allclose(entries[i][2], entries[i - 1][2], rtol=0.0, atol=1e-9)]
+        run_starts = [i for i in range(len(entries))
+                      if i == 0 or not np.allclose(entries[i][2], entries[i - 1][2], rtol=0.0, atol=1e-9)]
         run_bounds = list(zip(run_starts, run_starts[1:] + [len(entries)]))
         timestamps, poses = [], []
         for start, stop in run_bounds:
             frames = {entries[i][0] for i in range(start, stop)}
             in_run = [k for k, frame_index in enumerate(keyframe_frames) if frame_index in frames]
-            run_correction = _mean_transform([corrections[k] for k in in_run]) if in_run else None
             anchor = object_map.trajectory_anchors.get(entries[start][0])  # when the kept pose was registered
-            if run_correction is None and anchor is not None:
-                keyframe, T_map_cam_then = anchor
-                run_correction = keyframe.T_map_cam @ np.linalg.inv(T_map_cam_then)
+            if in_run:
+                correction = _mean_transform([corrections[k] for k in in_run])
+            elif anchor is not None:
+                correction = _keyframe_correction(*anchor)
+            else:  # (a map built by hand) the pose as tracked
+                correction = np.eye(4)
             for frame_index, timestamp, T_w_o in entries[start:stop]:
                 report = reports.get(frame_index)
                 if report is not None and report.tracked:
-                    correction = run_correction
-                    if correction is None and len(keyframes):
-                        correction = corrections[int(np.argmin(np.abs(keyframe_frames - frame_index)))]
-                    T_o_c = np.linalg.inv(T_w_o) @ report.T_w_c
-                    if correction is not None:
-                        T_o_c = correction @ T_o_c
+                    T_o_c = correction @ (np.linalg.inv(T_w_o) @ report.T_w_c)
                     T_w_o = self.current_pose(report) @ np.linalg.inv(T_o_c)
                 timestamps.append(timestamp)
                 poses.append(T_w_o)

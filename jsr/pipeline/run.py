@@ -18,7 +18,8 @@ Layout written (``DIR``)::
                                          bundle adjustment of the static map and of object K's map; a rest
                                          takes the mean correction of its keyframes, so at the detection
                                          frame T_w_o may differ from T_w_c by the mean's share of the
-                                         others' corrections, typically under a degree and a centimetre)
+                                         others' corrections: a few tenths of a degree and up to about
+                                         a centimetre on the synthetic sequences)
     objects/object_K/keyframes.tum       T_o_c of its keyframes (object frame = camera frame at detection)
     objects/object_K/landmarks.ply       its active point landmarks (object frame)
     objects/object_K/cloud.ply, mesh.ply its dense model (object frame; end of run)
