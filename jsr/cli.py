@@ -80,6 +80,10 @@ def _user_errors(command: Callable) -> Callable:
             raise typer.Exit(_interrupt_exit_code(interrupt))
         except (typer.Exit, typer.Abort):
             raise
+        except OSError as error:  # a path that cannot be read or written (a folder, no permission, ...)
+            logger.debug("traceback of the file error", exc_info=True)
+            where = f" {error.filename}" if error.filename else ""
+            _fail(f"cannot read or write{where}: {error.strerror or error}; check the path and its permissions")
         except Exception as error:  # a bug: one line; the traceback with -vv
             logger.debug("traceback of the internal error", exc_info=True)
             _fail(f"internal error ({type(error).__name__}: {error}); this is a bug in jsr: please report it with "
@@ -261,10 +265,11 @@ def _initial_object_mask(mask_file: Optional[Path], box: Optional[str], shape: t
             raise InputError(f"--init-box must be four integers X0,Y0,X1,Y1, got '{box}'") from None
         if x1 <= x0 or y1 <= y0:
             raise InputError(f"--init-box {box}: give the top-left corner X0,Y0 first, then the bottom-right X1,Y1")
-        x0, x1 = max(0, x0), min(width, x1)
-        y0, y1 = max(0, y0), min(height, y1)
+        if min(x0, y0) < 0 or x1 > width or y1 > height:
+            raise InputError(f"--init-box {box} reaches outside the {width}x{height} image: pixel coordinates go "
+                             f"from 0,0 to {width},{height}")
         if x1 - x0 < 2 or y1 - y0 < 2:
-            raise InputError(f"--init-box {box} leaves no pixels inside the {width}x{height} image")
+            raise InputError(f"--init-box {box} is less than 2 pixels wide or high")
         import numpy as np
 
         mask = np.zeros(shape, dtype=bool)
@@ -382,6 +387,9 @@ def frames(
     data = _open_sequence(sequence, config, camera, preset, start, max_frames, stride)
     if out.exists() and not out.is_dir():
         _fail(f"--out {out} is a file; give a folder")
+    if out.resolve() == sequence.resolve() or sequence.resolve() in out.resolve().parents:
+        _fail(f"--out {out} is inside the sequence folder {sequence}, whose images overlays could replace; "
+              "choose a folder outside it")
     if out.is_dir() and any(out.iterdir()) and not overwrite:
         _fail(f"--out {out} is not empty; pass --overwrite (overlays of the same frames are replaced) "
               "or choose another folder")

@@ -106,6 +106,8 @@ def make_bad_input(tmp_path, problem):
         args += ["--init-box", "1000,1000,2000,2000"]
     elif problem == "init box corners swapped":
         args += ["--init-box", "20,15,4,3"]
+    elif problem == "init box negative":
+        args += ["--init-box", "-5,-5,20,20"]
     elif problem == "init mask size":
         cv2.imwrite(str(tmp_path / "mask.png"), np.full((10, 10), 255, np.uint8))
         args += ["--init-object", tmp_path / "mask.png"]
@@ -119,7 +121,7 @@ def make_bad_input(tmp_path, problem):
 BAD_INPUTS = {
     "missing folder": "does not exist",
     "no rgb.txt or pairs": "neither rgb.txt nor",
-    "truncated image": "unreadable or truncated",
+    "truncated image": "is truncated (no PNG end marker)",
     "not an image": "unreadable or truncated",
     "depth size": "register depth to colour",
     "zero depth": "no valid depth",
@@ -134,7 +136,8 @@ BAD_INPUTS = {
     "negative seed": "'seed' must be a whole number >= 0",
     "fractional width": "width must be a whole number",
     "bad init box": "--init-box must be four integers",
-    "init box off the image": "leaves no pixels inside the 32x24 image",
+    "init box off the image": "reaches outside the 32x24 image",
+    "init box negative": "reaches outside the 32x24 image",
     "init box corners swapped": "top-left corner X0,Y0 first",
     "init mask size": "initial object mask",
     "missing init mask": "does not exist",
@@ -179,6 +182,62 @@ def test_export_object_input_errors(tmp_path):
     (tmp_path / "res" / "objects" / "object_1").mkdir(parents=True)
     assert_one_line_error(run("export-object", tmp_path / "res", 1, "--out", tmp_path / "o.ply", "--timestamp", "1"),
                           "with --world")
+
+
+def test_truncated_png_gives_one_line_and_no_libpng_message(tmp_path, capfd):
+    """A PNG cut short is found before libpng decodes it, which would print its own line."""
+    from jsr.cli import main
+
+    seq = write_tiny_tum(tmp_path / "seq")
+    data = depth_paths(seq)[1].read_bytes()
+    depth_paths(seq)[1].write_bytes(data[: len(data) // 2])
+    with pytest.raises(SystemExit) as stop:
+        main(["reconstruct", str(seq), "--out", str(tmp_path / "out"), "-q"])
+    assert stop.value.code == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error:") and "truncated" in err[0], err
+
+
+def test_overlays_never_go_into_the_sequence_folder(tmp_path):
+    seq = write_tiny_tum(tmp_path / "seq")
+    before = colour_paths(seq)[0].read_bytes()
+    assert_one_line_error(run("frames", seq, "--out", seq / "rgb", "--overwrite"), "inside the sequence folder")
+    assert colour_paths(seq)[0].read_bytes() == before
+
+
+def _results_with_object_mesh(root):
+    """A results folder holding object 1's mesh.ply (one triangle), as jsr reconstruct writes it."""
+    import open3d as o3d
+
+    from jsr.io.writers import write_geometry_ply
+
+    folder = root / "objects" / "object_1"
+    folder.mkdir(parents=True)
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.eye(3)), o3d.utility.Vector3iVector([[0, 1, 2]]))
+    write_geometry_ply(folder / "mesh.ply", mesh)
+    return folder / "mesh.ply"
+
+
+def test_export_object_refuses_truncated_models_and_its_own_results(tmp_path):
+    mesh = _results_with_object_mesh(tmp_path / "res")
+    assert run("export-object", tmp_path / "res", 1, "--out", tmp_path / "ok.ply").exit_code == 0
+    assert_one_line_error(run("export-object", tmp_path / "res", 1, "--out", mesh, "--overwrite"),
+                          "is one of the models of the results folder")
+    data = mesh.read_bytes()
+    mesh.write_bytes(data[:-10])
+    assert_one_line_error(run("export-object", tmp_path / "res", 1, "--out", tmp_path / "cut.ply"), "truncated")
+    assert not (tmp_path / "cut.ply").exists()
+
+
+def test_unwritable_output_paths_give_one_line(tmp_path):
+    mesh = _results_with_object_mesh(tmp_path / "res")
+    (tmp_path / "a_file").write_text("x")
+    assert_one_line_error(run("export-object", tmp_path / "res", 1, "--out", tmp_path / "a_file" / "x.ply"),
+                          "cannot read or write")
+    (tmp_path / "folder.ply").mkdir()
+    assert_one_line_error(run("export-object", tmp_path / "res", 1, "--out", tmp_path / "folder.ply", "--overwrite"),
+                          "it is a folder")
+    assert mesh.is_file()
 
 
 @pytest.mark.parametrize("argv, fragment", [

@@ -52,6 +52,10 @@ def export_object(
         raise InputError(f"output {out_path} must end in .ply")
     if out_path.exists() and not overwrite:
         raise OutputError(f"{out_path} already exists; pass --overwrite or choose another file")
+    model_folders = [Path(results_dir).resolve() / name for name in ("objects", "static")]
+    if out_path.exists() and any(folder in out_path.resolve().parents for folder in model_folders):
+        raise OutputError(f"{out_path} is one of the models of the results folder {results_dir}; write the export "
+                          "elsewhere")
     if timestamp is not None and not in_world:
         raise InputError("--timestamp picks the pose that places the object in the world: give it with --world")
     if not Path(results_dir).is_dir():

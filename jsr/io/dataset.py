@@ -230,7 +230,15 @@ def _read_file_bytes(path: Path, what: str) -> bytes:
         raise InputError(f"cannot read {what} image {path}: {error.strerror}") from None
     if not data:
         raise InputError(f"{what} image {path} is empty; replace it or remove its line")
+    if data.startswith(PNG_SIGNATURE) and PNG_END not in data[-PNG_END_SEARCH:]:
+        # cut short (a copy that stopped): said here, before libpng prints its own complaint
+        raise InputError(f"{what} image {path} is truncated (no PNG end marker); replace it or remove its line")
     return data
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_END = b"IEND"  # the last chunk of every complete PNG: its type, then a 4-byte checksum
+PNG_END_SEARCH = 64  # bytes at the end searched for it (some writers append a few bytes after it)
 
 
 def check_frame_shapes(color: np.ndarray, depth: np.ndarray, intrinsics: CameraIntrinsics, entry: FrameEntry) -> None:
@@ -333,8 +341,9 @@ def open_sequence(
         raise InputError(f"sequence folder {root} does not exist")
     if not root.is_dir():
         raise InputError(f"{root} is not a folder; give the sequence folder (with rgb.txt or image pairs)")
-    if start < 0 or stride < 1 or (max_frames is not None and max_frames < 1):
-        raise InputError("--start must be >= 0, --stride >= 1 and --max-frames >= 1")
+    for option, value, least in (("--start", start, 0), ("--stride", stride, 1), ("--max-frames", max_frames, 1)):
+        if value is not None and value < least:
+            raise InputError(f"{option} must be >= {least}, got {value}")
     if is_tum_folder(root):
         entries, report = list_tum_entries(root, max_time_difference)
         kind = "tum"
@@ -346,7 +355,8 @@ def open_sequence(
                 f"{root} has neither rgb.txt nor colour/depth image pairs (rgb/ + depth/ or NAME_rgb + NAME_depth)"
             )
     if not entries:
-        raise InputError(f"{root}: no frame has both a colour and a depth image ({'; '.join(report.notes)})")
+        why = f" ({'; '.join(report.notes)})" if report.notes else " (its image lists are empty)"
+        raise InputError(f"{root}: no frame has both a colour and a depth image{why}")
     selected = entries[start::stride]
     if max_frames is not None:
         selected = selected[:max_frames]

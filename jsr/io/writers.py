@@ -71,13 +71,61 @@ def write_geometry_ply(path: Path, geometry) -> None:
             raise OSError(f"Open3D could not write {path}")
 
 
+PLY_TYPE_BYTES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+                  "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8,
+                  "float64": 8}
+
+
+def _ply_header(path: Path) -> tuple[str, dict[str, int], int]:
+    """``(format, {element: count}, least size in bytes)`` of a PLY file from its header; the
+    least size is that of a binary file whose faces are triangles (0 for ASCII). Raises
+    :class:`InputError` when there is no complete PLY header."""
+    from jsr.errors import InputError
+
+    with open(path, "rb") as handle:
+        head = handle.read(1 << 16)
+    end = head.find(b"end_header\n")
+    if not head.startswith(b"ply") or end < 0:
+        raise InputError(f"{path} is not a PLY file or its header is cut short; re-run jsr reconstruct")
+    file_format, counts, sizes, element = "", {}, {}, None
+    for line in head[:end].decode("ascii", "replace").splitlines():
+        words = line.split()
+        if words[:1] == ["format"] and len(words) > 1:
+            file_format = words[1]
+        elif words[:1] == ["element"] and len(words) == 3:
+            element = words[1]
+            counts[element], sizes[element] = int(words[2]), 0
+        elif words[:1] == ["property"] and element is not None:
+            if words[1] == "list" and len(words) == 5:  # count type, item type: a triangle's 3 items
+                sizes[element] += PLY_TYPE_BYTES.get(words[2], 1) + 3 * PLY_TYPE_BYTES.get(words[3], 4)
+            elif len(words) == 3:
+                sizes[element] += PLY_TYPE_BYTES.get(words[1], 4)
+    least = 0 if file_format == "ascii" else end + len(b"end_header\n") + sum(
+        counts[name] * sizes[name] for name in counts)
+    return file_format, counts, least
+
+
 def read_geometry_ply(path: Path):
-    """Read a PLY file as a ``TriangleMesh`` if it has faces, else as a ``PointCloud``."""
+    """Read a PLY file as a ``TriangleMesh`` if it has faces, else as a ``PointCloud``.
+
+    Raises :class:`~jsr.errors.InputError` for a file cut short or whose vertex or face count
+    disagrees with its header (Open3D would return the part it could read)."""
+    from jsr.errors import InputError
+
+    path = Path(path)
+    _, counts, least = _ply_header(path)
+    if path.stat().st_size < least:
+        raise InputError(f"{path} is truncated ({path.stat().st_size} of at least {least} bytes); "
+                         "re-run jsr reconstruct to write it again")
     o3d = open3d_quiet()
     mesh = o3d.io.read_triangle_mesh(str(path))
-    if len(mesh.triangles) > 0:
-        return mesh
-    return o3d.io.read_point_cloud(str(path))
+    geometry = mesh if len(mesh.triangles) > 0 else o3d.io.read_point_cloud(str(path))
+    vertices = len(geometry.vertices if geometry is mesh else geometry.points)
+    faces = len(mesh.triangles)
+    if vertices != counts.get("vertex", 0) or faces != counts.get("face", 0):
+        raise InputError(f"{path} is corrupt: {vertices} vertices and {faces} faces read where its header declares "
+                         f"{counts.get('vertex', 0)} and {counts.get('face', 0)}; re-run jsr reconstruct")
+    return geometry
 
 
 def write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence[object]]) -> None:
