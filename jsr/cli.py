@@ -19,6 +19,7 @@ from typing import Callable, List, Optional
 import typer
 from rich.console import Console
 from rich.logging import RichHandler
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Column, Table
 
@@ -62,7 +63,8 @@ def _configure_logging(verbose: int, quiet: bool) -> None:
 
 
 def _fail(message: str, code: int = 2) -> None:
-    console.print(f"[bold red]error:[/] {message}", soft_wrap=True)
+    # escaped: a message quoting a list or a path with brackets is not rich markup
+    console.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True)
     raise typer.Exit(code)
 
 
@@ -234,7 +236,7 @@ def reconstruct(
         if json_summary:  # a batch job still gets its line, with "status" interrupted or failed
             _print_summary_file(out_dir / "summary.json")
         if isinstance(stopped, KeyboardInterrupt):
-            console.print(f"[yellow]interrupted[/]: results of the frames done are in {out_dir}")
+            console.print(f"[yellow]interrupted[/]: results of the frames done are in {escape(str(out_dir))}")
             raise typer.Exit(_interrupt_exit_code(stopped)) from None
         raise stopped
     if json_summary:
@@ -544,7 +546,7 @@ def main(argv: list[str] | None = None) -> None:
         if type(error).__name__ == "NoArgsIsHelpError":  # bare 'jsr': the help was printed
             sys.exit(2)
         command = error.ctx.command_path if getattr(error, "ctx", None) is not None else "jsr"
-        console.print(f"[bold red]error:[/] {error.format_message()} (see '{command} --help')", soft_wrap=True)
+        console.print(f"[bold red]error:[/] {escape(error.format_message())} (see '{command} --help')", soft_wrap=True)
         sys.exit(2)
     except (KeyboardInterrupt, typer.Abort) as interrupt:  # before a command took over
         sys.exit(_interrupt_exit_code(interrupt) if isinstance(interrupt, KeyboardInterrupt) else EXIT_INTERRUPTED)

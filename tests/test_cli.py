@@ -113,6 +113,8 @@ def make_bad_input(tmp_path, problem):
         args += ["--init-object", tmp_path / "mask.png"]
     elif problem == "missing init mask":
         args += ["--init-object", tmp_path / "nomask.png"]
+    elif problem == "short distortion":
+        (seq / "camera.yaml").write_text("fx: 30\nfy: 30\ncx: 16\ncy: 12\nwidth: 32\nheight: 24\ndistortion: [1, 2]\n")
     elif problem == "fractional width":
         (seq / "camera.yaml").write_text("fx: 30\nfy: 30\ncx: 16\ncy: 12\nwidth: 32.5\nheight: 24\n")
     return args
@@ -135,6 +137,7 @@ BAD_INPUTS = {
     "binary config": "not a text file",
     "negative seed": "'seed' must be a whole number >= 0",
     "fractional width": "width must be a whole number",
+    "short distortion": "(k1 k2 p1 p2 [k3])",  # printed as written, not taken for rich markup
     "bad init box": "--init-box must be four integers",
     "init box off the image": "reaches outside the 32x24 image",
     "init box negative": "reaches outside the 32x24 image",
