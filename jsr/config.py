@@ -145,6 +145,7 @@ class DetectionConfig:
     displaced_free_space_share: float = 0.5
     where_lost: bool = True
     merge_gap_pixels: int = 2
+    split_motion_distance: float = 0.06
     min_object_points: int = 15
     partial_outlier_ratio: float = 0.3
 
@@ -164,6 +165,7 @@ class ObjectsConfig:
     extent_margin: float = 0.03
     extent_share: float = 0.5
     extent_from_surface: bool = True
+    extent_unseen_only: bool = True
     retire_object_matches: bool = True
     hold_back_suspects: bool = True
     hold_back_beside_moved: bool = True
@@ -405,7 +407,9 @@ def _apply_mapping(target: Any, values: dict, prefix: str) -> None:
         current = getattr(target, name)
         if dataclasses.is_dataclass(current):
             if not isinstance(value, dict):
-                raise ConfigError(f"config key '{key}' is a section; give it as a mapping of keys")
+                example = f"{key}.{dataclasses.fields(current)[0].name}"
+                raise ConfigError(f"config key '{key}' is a section, not a value: give its keys (a mapping in a "
+                                  f"config file; with --set, one key at a time: --set {example}=...)")
             _apply_mapping(current, value, f"{key}.")
             continue
         coerced = _coerce(key, value, hints[name])

@@ -77,6 +77,8 @@ def test_bad_overrides():
         load_config(None, ["ransac.min_matches=abc"])
     with pytest.raises(ConfigError, match="min_depth"):
         load_config(None, ["input.min_depth=7", "input.max_depth=6"])
+    with pytest.raises(ConfigError, match=r"is a section, not a value.*--set ransac\.min_inlier_ratio="):
+        load_config(None, ["ransac=5"])
 
 
 def test_partial_outlier_ratio_must_stay_below_the_full_ratio():
