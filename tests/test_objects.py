@@ -1158,6 +1158,72 @@ def test_face_with_few_3d_features_grows_into_its_object_when_it_moved_in(violat
     reconstructor.close()
 
 
+@pytest.mark.parametrize("unseen_only, segment_2_pixels, grown", [
+    (True, 960, [0, 1]),  # 40 of its 60 samples tested, all on a surface seen before: stays static
+    (True, 1600, [0, 1, 2]),  # 40 of 100: the keyframes saw too little of it to tell
+    (False, 960, [0, 1, 2]),
+])
+def test_segment_inside_the_extent_where_the_static_keyframes_saw_a_surface_stays_static(unseen_only,
+                                                                                        segment_2_pixels, grown):
+    """objects.grow_inside_extent: a featureless segment inside the object's extent joins the
+    object, unless the static keyframes taken since its map began saw a surface where it lies
+    (and its static matches did not move; objects.extent_unseen_only): the background a jumped
+    object left, taken once into its map (synth_two_sim seed 1 at 320x240), stretched the extent
+    over the scene, which then grew into one static segment after another (70% of the object's
+    mask static by the end). Earlier keyframes saw the object's own faces as static; a segment
+    they saw less than half of may be a face of the object that moved there."""
+    from jsr.synth import synth_intrinsics
+
+    config = load_config(None, [f"objects.extent_unseen_only={str(unseen_only).lower()}"])
+    reconstructor = Reconstructor(config, synth_intrinsics(640, 480))
+    segments = _FrameSegments([np.arange(0, 20), np.arange(20, 30), np.arange(30, 40)])
+    segments.pixel_counts = [960, 960, segment_2_pixels]  # free-space samples: every 4th pixel of every 4th row
+    measurements = SimpleNamespace(segments=segments, points=_FramePoints(has_depth=np.ones(40, dtype=bool)),
+                                   frame_index=30)
+    reconstructor._frame_pose = np.eye(4)
+    reconstructor._static_matched = np.zeros(40, dtype=bool)
+    reconstructor._adjacency_cache = np.array([[0, 1], [0, 2]])
+    # segment 1: too few samples for a free-space verdict; segment 2: all 40 tested on a surface
+    # seen before
+    reconstructor._free_space_cache = (np.array([0, 0, 0]), np.array([0, 2, 40]))
+    # ... by the static keyframes taken since the object's map began (the object left out of them)
+    since = []
+    reconstructor._free_space_counts = lambda *args, after_frame=None: since.append(after_frame) or \
+        reconstructor._free_space_cache
+    owner = np.array([1, 0, 0])
+    inside = np.array([False, True, True])
+    assert reconstructor._grow(SimpleNamespace(), measurements, [0], np.zeros(40, dtype=bool), owner, inside,
+                               known_since=7) == grown
+    assert since == ([7] if unseen_only else [])
+    reconstructor.close()
+
+
+@pytest.mark.parametrize("second_shift, limit, expected", [
+    ((0.0, 0.0, 0.3), 0.06, [[0], [1, 2]]),  # moved 30 cm apart: two objects side by side
+    ((0.3, 0.0, 0.02), 0.06, [[0, 1, 2]]),  # 2 cm apart: one object, its two faces fitted apart
+    ((0.0, 0.0, 0.3), 0.0, [[0, 1, 2]]),  # detection.split_motion_distance 0: off
+])
+def test_touching_moving_segments_that_moved_apart_start_separate_maps(second_shift, limit, expected):
+    """Reconstructor._split_by_motion: segments 0 and 1 touch and both moved this frame, by the
+    motions their outliers agree on; segment 2 (no motion of its own, found by free space) lies
+    beside segment 1 in the image. synth_two_sim seed 13: a box and a cylinder moved 0.72 m and
+    0.42 m in one frame and made one map."""
+    from jsr.geometry import make_transform
+    from jsr.synth import synth_intrinsics
+
+    config = load_config(None, [f"detection.split_motion_distance={limit}"])
+    reconstructor = Reconstructor(config, synth_intrinsics(640, 480))
+    segments = _FrameSegments([np.arange(0, 5), np.arange(5, 10), np.arange(10, 15)])
+    segments.label_image = np.repeat(np.repeat(np.arange(3), 10)[None], 10, axis=0)  # columns 0-9, 10-19, 20-29
+    camera_points = np.column_stack([np.linspace(-0.3, 0.3, 15), np.zeros(15), np.full(15, 1.5)])
+    measurements = SimpleNamespace(segments=segments, frame_index=10,
+                                   points=_FramePoints(has_depth=np.ones(15, dtype=bool), points=camera_points))
+    reconstructor._frame_motions = [([0], make_transform(np.eye(3), [0.3, 0.0, 0.0])),
+                                    ([1], make_transform(np.eye(3), second_shift))]
+    assert reconstructor._split_by_motion(measurements, [0, 1, 2], np.eye(4)) == expected
+    reconstructor.close()
+
+
 def test_landmarks_that_agree_from_two_far_fits_overrule_the_surface():
     """Reconstructor._landmarks_agree_elsewhere: landmark registrations away from the surface
     fits that predicted them are trusted only when two fits far apart (beyond 20 cm or 30

@@ -114,6 +114,10 @@ UNMATCHED_FEATURE_FACTOR = 2  # a face whose 3D features hardly match the static
 SELF_TEXTURE_MIN = 0.2  # own views agreeing less (an object of one colour): no texture to tell fits apart (measured: kitchen_box120 0.38-0.51, synthetic 0.87-0.9)
 # two frames' rotations fitted to 5-15 points each differ by a few degrees (synth_two seed 3: 3.2)
 TURN_MEMORY_DEGREES_FACTOR = 2
+# objects.extent_unseen_only: the static keyframes must have seen at least this share of a
+# segment's sampled pixels (a moving object's face a keyframe saw in part, 8 of 50 samples on
+# synth_smooth seed 1 at 320x240, is not the background that took over a map)
+SEEN_SINCE_MIN_COVER = 0.5
 IN_PLACE_TURN_INLIER_FACTOR = 2  # overruling the in-place veto by one frame's rigid turn takes this many times the usual agreeing outliers (two frames: see detection.in_place_turn_memory_frames)
 # A segment that turned as a whole has nearly all its matches agree on the turn; a static one
 # on real data has RANSAC fit a spurious turn to 5-9 of its 7-15 matches (kitchen_box120)
@@ -322,6 +326,8 @@ class Reconstructor:
         # In-place turns of recent frames that had too few agreeing outliers alone:
         # (frame index, (4, 4) world motion of the region, new place -> old place)
         self._recent_turns: list[tuple[int, np.ndarray]] = []
+        # this frame's rigid motions of moving regions: (segments, world motion new place -> old place)
+        self._frame_motions: list[tuple[list[int], np.ndarray]] = []
         # Subsampled depth of the latest static keyframes, for free-space tests (detection).
         self.depth_views: list[tuple[int, DepthView]] = []
         # Ids of the static landmarks that were inliers of the previous frame's static
@@ -462,6 +468,10 @@ class Reconstructor:
                 if object_map is not None:
                     report.objects_created.append(object_map.object_id)
                     report.objects_tracked.append(object_map.object_id)
+                else:
+                    logger.warning("the initial object mask covers too few 3D features on frame %d (an object map "
+                                   "needs %d); no object map started: give a larger mask or box", frame.index,
+                                   min(self.config.detection.min_object_points, self.config.ransac.min_matches))
             else:
                 logger.warning("the initial object mask covers no segment of frame %d; no object map started",
                                frame.index)
@@ -750,9 +760,11 @@ class Reconstructor:
         return self._adjacency_cache
 
     def _grow(self, frame: Frame, measurements: FrameMeasurements, seeds: list[int], static_inliers: np.ndarray,
-              segment_owner: np.ndarray, inside: np.ndarray | None = None) -> list[int]:
+              segment_owner: np.ndarray, inside: np.ndarray | None = None, known_since: int = -1) -> list[int]:
         """``seeds`` grown into depth-adjacent segments that nothing shows to be static
-        (``objects.grow_segments``): the faces of an object whose features are not matched yet."""
+        (``objects.grow_segments``): the faces of an object whose features are not matched yet.
+        ``inside`` ``(S,)`` bool: segments inside the extent of the object, a map since frame
+        ``known_since``."""
         if not self.config.objects.grow_segments or not seeds:
             return sorted(int(s) for s in seeds)
         if self._frame_pose is None:
@@ -804,9 +816,29 @@ class Reconstructor:
                 violations >= self._free_space_min_samples())
         if inside is not None:
             # Inside the object's extent and not shown static by its features: the object's own
-            # faces, even without reliable 3D features (seen at a grazing angle).
-            candidates |= inside & (segment_owner == 0) & (static_count < min_features) & (
+            # faces, even without reliable 3D features (seen at a grazing angle). Not where the
+            # static keyframes saw a surface (objects.extent_unseen_only): once the extent took in
+            # some background (the place a jumped object left), it would otherwise take the scene
+            # around it segment by segment (synth_two_sim seed 1 at 320x240: 70% of the box's
+            # mask static by the end).
+            taken = inside & (segment_owner == 0) & (static_count < min_features) & (
                 static_count <= UNSUPPORTED_STATIC_SHARE * np.maximum(features, 1))
+            if self.config.objects.extent_unseen_only and taken.any():
+                # only keyframes taken once the object had its map (its pixels left out of them)
+                # count: before, they saw the object's own faces as static surfaces
+                later = self._free_space_counts(frame, measurements, self._frame_pose, after_frame=known_since)
+                samples = np.asarray(measurements.segments.pixel_counts) / FREE_SPACE_STRIDE**2
+                seen_since = self._seen_before(*later) & ~moved & (
+                    later[0] + later[1] >= SEEN_SINCE_MIN_COVER * samples)
+                if (taken & seen_since).any():
+                    logger.debug("frame %d: segments %s inside the extent of the object of seeds %s stay static: "
+                                 "static keyframes since frame %d saw a surface there (%s of %s tested, of %s)",
+                                 measurements.frame_index, np.flatnonzero(taken & seen_since).tolist(), seeds,
+                                 known_since, later[1][taken & seen_since].tolist(),
+                                 (later[0] + later[1])[taken & seen_since].tolist(),
+                                 samples[taken & seen_since].astype(int).tolist())
+                taken &= ~seen_since
+            candidates |= taken
         return grow_region(seeds, candidates, self._adjacency(frame, measurements))
 
     def _free_space(self, frame: Frame, measurements: FrameMeasurements) -> tuple[np.ndarray, np.ndarray]:
@@ -862,7 +894,8 @@ class Reconstructor:
                     segments.label_image, frame.depth, self.intrinsics, by_id[r.object_id].T_o_c, hulls[r.object_id],
                     self.config.noise, len(segments), self.config.objects.extent_margin,
                     self.config.objects.extent_share)
-                grown = self._grow(frame, measurements, own, static_inliers, segment_owner, inside)
+                grown = self._grow(frame, measurements, own, static_inliers, segment_owner, inside,
+                                   by_id[r.object_id].object_map.created_at_frame)
                 segment_owner[[s for s in grown if segment_owner[s] == 0]] = r.object_id
             # Features and planes inside an object's segment go to that object, matched or not:
             # new views of the object grow its map instead of leaking into the static map.
@@ -934,6 +967,7 @@ class Reconstructor:
         (an object seen again, elsewhere); if none fits, it starts a new object map."""
         if static.bridged:
             return  # matched against the previous frame only: outliers say nothing about motion
+        self._frame_motions = []
         points, segments = measurements.points, measurements.segments
         num_points = len(points)
         matched = np.zeros(num_points, dtype=bool)
@@ -989,9 +1023,14 @@ class Reconstructor:
         if not moving:
             return
         groups = merge_adjacent_moving_segments(segments, moving, self.config.detection.merge_gap_pixels)
+        groups = [part for group in groups for part in self._split_by_motion(measurements, group, report.T_w_c)]
         by_id = {outcome.object_map.object_id: outcome for outcome in outcomes}
-        for group in groups:
-            group = self._grow(frame, measurements, group, inliers, assignment.segment_owner)
+        for index, group in enumerate(groups):
+            # a group does not grow into another group of this frame (an object beside it that moved too)
+            others = [s for k, other in enumerate(groups) if k != index for s in other]
+            owner = assignment.segment_owner.copy()
+            owner[others] = np.where(owner[others] == 0, -1, owner[others])
+            group = self._grow(frame, measurements, group, inliers, owner)
             group_points = np.concatenate([segments.point_indices[s] for s in group]).astype(np.int64)
             group_points = group_points[assignment.point_owner[group_points] == 0]
             if int(points.has_depth[group_points].sum()) < self.config.detection.min_object_points:
@@ -1008,6 +1047,56 @@ class Reconstructor:
             if object_map is not None:
                 report.objects_created.append(object_map.object_id)
                 report.objects_tracked.append(object_map.object_id)
+
+    def _split_by_motion(self, measurements: FrameMeasurements, group: list[int], T_w_c: np.ndarray) -> list[list[int]]:
+        """A group of touching moving segments, split when the rigid motions found for its parts
+        this frame (:meth:`_rigidly_moved`) disagree: two objects side by side that moved in the
+        same frame (the paper's method makes them one map). Two motions disagree when they put
+        the old place of either part's centroid (world frame) more than
+        ``detection.split_motion_distance`` apart. Parts whose motions agree stay together;
+        a segment of the group without a motion of its own (found by free space or displaced
+        landmarks) joins the part nearest to it in the image. Returns the groups, each
+        ascending (the group itself when there is nothing to split)."""
+        limit = self.config.detection.split_motion_distance
+        parts = [(sorted(set(g) & set(group)), motion) for g, motion in self._frame_motions if set(g) & set(group)]
+        if limit <= 0 or len(parts) < 2:
+            return [group]
+        points = measurements.points
+
+        def centroid(segment_ids: list[int]) -> np.ndarray | None:
+            indices = np.concatenate([measurements.segments.point_indices[s] for s in segment_ids]).astype(np.int64)
+            indices = indices[points.has_depth[indices]]
+            return transform_points(T_w_c, points.points[indices]).mean(axis=0) if len(indices) else None
+
+        clusters: list[tuple[list[int], list[np.ndarray], list[np.ndarray]]] = []  # segments, motions, centroids
+        for segment_ids, motion in parts:
+            centre = centroid(segment_ids)
+            if centre is None:
+                continue
+            for cluster in clusters:
+                checks = cluster[2] + [centre]
+                if all(np.linalg.norm(transform_points(motion, c[None])[0] - transform_points(other, c[None])[0])
+                       <= limit for other in cluster[1] for c in checks):
+                    cluster[0].extend(segment_ids), cluster[1].append(motion), cluster[2].append(centre)
+                    break
+            else:
+                clusters.append((list(segment_ids), [motion], [centre]))
+        if len(clusters) < 2:
+            return [group]
+        labels = measurements.segments.label_image
+        pixel_centres = {}
+        for segment in group:
+            rows, cols = np.nonzero(labels == segment)
+            pixel_centres[segment] = np.array([cols.mean(), rows.mean()]) if len(rows) else np.zeros(2)
+        split = [list(cluster[0]) for cluster in clusters]
+        for segment in group:
+            if any(segment in part for part in split):
+                continue
+            nearest = min(range(len(split)), key=lambda k: min(
+                np.linalg.norm(pixel_centres[segment] - pixel_centres[s]) for s in split[k]))
+            split[nearest].append(segment)
+        logger.debug("frame %d: segments %s moved apart: split into %s", measurements.frame_index, group, split)
+        return [sorted(part) for part in split]
 
     def _where_just_lost(self, measurements: FrameMeasurements, candidates: list[int],
                          outcomes: list[ObjectTrackingResult]) -> list[int]:
@@ -1177,6 +1266,11 @@ class Reconstructor:
                 logger.debug("frame %d: segments %s: where they came from is not vacated", measurements.frame_index,
                              group)
                 continue
+            if motion.num_inliers >= usual_inliers:
+                # evidence of how this region moved, for telling apart two objects that moved side by
+                # side (_split_by_motion), even where an in-place turn still awaits confirmation
+                self._frame_motions.append((list(group), motion.transformation @ invert_transform(
+                    static.result.transformation)))
             needed = usual_inliers if min_turn_degrees is None else IN_PLACE_TURN_INLIER_FACTOR * usual_inliers
             if motion.num_inliers < needed:
                 # too few agreeing outliers to decide alone (an object turned so that few of its
@@ -1905,13 +1999,16 @@ class Reconstructor:
         self.depth_views.append((keyframe_id, DepthView(depth, self.static_map.keyframes[-1].T_map_cam, stride)))
         del self.depth_views[:-FREE_SPACE_VIEWS]
 
-    def _free_space_counts(self, frame: Frame, measurements: FrameMeasurements,
-                           T_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _free_space_counts(self, frame: Frame, measurements: FrameMeasurements, T_w_c: np.ndarray,
+                           after_frame: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Per segment ``(S,)``: sampled pixels lying in space the latest static keyframes saw
-        as empty (violations), and pixels agreeing with the surface they saw (consistent)."""
+        as empty (violations), and pixels agreeing with the surface they saw (consistent).
+        ``after_frame``: only the keyframes of later frames."""
         segments = measurements.segments
         per_view = []
         for keyframe_id, view in self.depth_views:
+            if after_frame is not None and self.static_map.keyframes[keyframe_id].frame_index <= after_frame:
+                continue
             view.T_w_c = self.static_map.keyframes[keyframe_id].T_map_cam  # after bundle adjustment
             per_view.append(free_space_violations(frame.depth, segments.label_image, T_w_c, self.intrinsics, view,
                                                   len(segments), self.config.noise,
