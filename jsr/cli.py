@@ -389,7 +389,7 @@ def frames(
     data = _open_sequence(sequence, config, camera, preset, start, max_frames, stride)
     if out.exists() and not out.is_dir():
         _fail(f"--out {out} is a file; give a folder")
-    if out.resolve() == sequence.resolve() or sequence.resolve() in out.resolve().parents:
+    if out.resolve().is_relative_to(sequence.resolve()):
         _fail(f"--out {out} is inside the sequence folder {sequence}, whose images overlays could replace; "
               "choose a folder outside it")
     if out.is_dir() and any(out.iterdir()) and not overwrite:

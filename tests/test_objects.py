@@ -1188,13 +1188,31 @@ def test_segment_inside_the_extent_where_the_static_keyframes_saw_a_surface_stay
     reconstructor._free_space_cache = (np.array([0, 0, 0]), np.array([0, 2, 40]))
     # ... by the static keyframes taken since the object's map began (the object left out of them)
     since = []
-    reconstructor._free_space_counts = lambda *args, after_frame=None: since.append(after_frame) or \
+    reconstructor._free_space_since = lambda frame, measurements, after_frame: since.append(after_frame) or \
         reconstructor._free_space_cache
     owner = np.array([1, 0, 0])
     inside = np.array([False, True, True])
     assert reconstructor._grow(SimpleNamespace(), measurements, [0], np.zeros(40, dtype=bool), owner, inside,
                                known_since=7) == grown
     assert since == ([7] if unseen_only else [])
+    reconstructor.close()
+
+
+def test_free_space_since_a_frame_counts_only_later_keyframes():
+    """Reconstructor._free_space_since: the static keyframes of frames after the given one;
+    when all the kept ones are, the frame's own (cached) counts, not computed again."""
+    from jsr.synth import synth_intrinsics
+
+    reconstructor = Reconstructor(load_config(None), synth_intrinsics(640, 480))
+    reconstructor.static_map.keyframes = [SimpleNamespace(frame_index=5), SimpleNamespace(frame_index=9)]
+    reconstructor.depth_views = [(0, None), (1, None)]
+    reconstructor._frame_pose = np.eye(4)
+    reconstructor._free_space_cache = ("all views",)
+    asked = []
+    reconstructor._free_space_counts = lambda frame, measurements, T_w_c, after_frame=None: asked.append(
+        after_frame) or ("later views",)
+    assert reconstructor._free_space_since(None, None, 3) == ("all views",) and asked == []
+    assert reconstructor._free_space_since(None, None, 7) == ("later views",) and asked == [7]
     reconstructor.close()
 
 

@@ -53,7 +53,7 @@ def export_object(
     if out_path.exists() and not overwrite:
         raise OutputError(f"{out_path} already exists; pass --overwrite or choose another file")
     model_folders = [Path(results_dir).resolve() / name for name in ("objects", "static")]
-    if out_path.exists() and any(folder in out_path.resolve().parents for folder in model_folders):
+    if out_path.exists() and any(out_path.resolve().is_relative_to(folder) for folder in model_folders):
         raise OutputError(f"{out_path} is one of the models of the results folder {results_dir}; write the export "
                           "elsewhere")
     if timestamp is not None and not in_world:

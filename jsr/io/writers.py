@@ -76,9 +76,9 @@ PLY_TYPE_BYTES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ush
                   "float64": 8}
 
 
-def _ply_header(path: Path) -> tuple[str, dict[str, int], int]:
-    """``(format, {element: count}, least size in bytes)`` of a PLY file from its header; the
-    least size is that of a binary file whose faces are triangles (0 for ASCII). Raises
+def _ply_header(path: Path) -> tuple[dict[str, int], int]:
+    """``({element: count}, least size in bytes)`` of a PLY file from its header; the least
+    size is that of a binary file whose faces are triangles (0 for ASCII). Raises
     :class:`InputError` when there is no complete PLY header."""
     from jsr.errors import InputError
 
@@ -102,7 +102,7 @@ def _ply_header(path: Path) -> tuple[str, dict[str, int], int]:
                 sizes[element] += PLY_TYPE_BYTES.get(words[1], 4)
     least = 0 if file_format == "ascii" else end + len(b"end_header\n") + sum(
         counts[name] * sizes[name] for name in counts)
-    return file_format, counts, least
+    return counts, least
 
 
 def read_geometry_ply(path: Path):
@@ -113,7 +113,7 @@ def read_geometry_ply(path: Path):
     from jsr.errors import InputError
 
     path = Path(path)
-    _, counts, least = _ply_header(path)
+    counts, least = _ply_header(path)
     if path.stat().st_size < least:
         raise InputError(f"{path} is truncated ({path.stat().st_size} of at least {least} bytes); "
                          "re-run jsr reconstruct to write it again")

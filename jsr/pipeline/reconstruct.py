@@ -251,6 +251,15 @@ def _keyframe_correction(keyframe, since: np.ndarray | None = None) -> np.ndarra
     return keyframe.T_map_cam @ np.linalg.inv(keyframe.T_map_cam_tracked if since is None else since)
 
 
+def _region_centroid(measurements: FrameMeasurements, segment_ids: list[int], T_w_c: np.ndarray) -> np.ndarray | None:
+    """``(3,)`` world-frame centroid of the 3D point measurements in the segments
+    ``segment_ids`` (camera pose ``T_w_c``), or None when none of them has depth."""
+    points = measurements.points
+    indices = np.concatenate([measurements.segments.point_indices[s] for s in segment_ids]).astype(np.int64)
+    indices = indices[points.has_depth[indices]]
+    return transform_points(T_w_c, points.points[indices]).mean(axis=0) if len(indices) else None
+
+
 def _mean_transform(transforms: list[np.ndarray]) -> np.ndarray:
     """``(4, 4)`` the mean of rigid transforms: chordal L2 mean rotation, mean translation."""
     stack = np.asarray(transforms, dtype=float).reshape(-1, 4, 4)
@@ -826,7 +835,7 @@ class Reconstructor:
             if self.config.objects.extent_unseen_only and taken.any():
                 # only keyframes taken once the object had its map (its pixels left out of them)
                 # count: before, they saw the object's own faces as static surfaces
-                later = self._free_space_counts(frame, measurements, self._frame_pose, after_frame=known_since)
+                later = self._free_space_since(frame, measurements, known_since)
                 samples = np.asarray(measurements.segments.pixel_counts) / FREE_SPACE_STRIDE**2
                 seen_since = self._seen_before(*later) & ~moved & (
                     later[0] + later[1] >= SEEN_SINCE_MIN_COVER * samples)
@@ -1061,23 +1070,18 @@ class Reconstructor:
         parts = [(sorted(set(g) & set(group)), motion) for g, motion in self._frame_motions if set(g) & set(group)]
         if limit <= 0 or len(parts) < 2:
             return [group]
-        points = measurements.points
-
-        def centroid(segment_ids: list[int]) -> np.ndarray | None:
-            indices = np.concatenate([measurements.segments.point_indices[s] for s in segment_ids]).astype(np.int64)
-            indices = indices[points.has_depth[indices]]
-            return transform_points(T_w_c, points.points[indices]).mean(axis=0) if len(indices) else None
-
         clusters: list[tuple[list[int], list[np.ndarray], list[np.ndarray]]] = []  # segments, motions, centroids
         for segment_ids, motion in parts:
-            centre = centroid(segment_ids)
+            centre = _region_centroid(measurements, segment_ids, T_w_c)
             if centre is None:
                 continue
-            for cluster in clusters:
-                checks = cluster[2] + [centre]
-                if all(np.linalg.norm(transform_points(motion, c[None])[0] - transform_points(other, c[None])[0])
-                       <= limit for other in cluster[1] for c in checks):
-                    cluster[0].extend(segment_ids), cluster[1].append(motion), cluster[2].append(centre)
+            for members, motions, centres in clusters:
+                checks = np.array(centres + [centre])
+                if all(np.linalg.norm(transform_points(motion, checks) - transform_points(other, checks), axis=1).max()
+                       <= limit for other in motions):
+                    members.extend(segment_ids)
+                    motions.append(motion)
+                    centres.append(centre)
                     break
             else:
                 clusters.append((list(segment_ids), [motion], [centre]))
@@ -1298,12 +1302,9 @@ class Reconstructor:
         rest gives the same motion in every frame; look-alikes and a person walking give a
         different one each time. The motion is remembered either way (in the world frame of this
         frame: a later bundle adjustment moves it by millimetres). Memory counts frame indices."""
-        points = measurements.points
-        indices = np.concatenate([measurements.segments.point_indices[s] for s in group]).astype(np.int64)
-        indices = indices[points.has_depth[indices]]
-        if not len(indices):
+        centroid = _region_centroid(measurements, group, T_w_c)
+        if centroid is None:
             return False
-        centroid = transform_points(T_w_c, points.points[indices]).mean(axis=0)
         motion = T_w_old @ invert_transform(T_w_c)  # world, new place -> old place
         detection = self.config.detection
         frame_index = measurements.frame_index
@@ -1998,6 +1999,15 @@ class Reconstructor:
         keyframe_id = self.static_map.keyframes[-1].keyframe_id
         self.depth_views.append((keyframe_id, DepthView(depth, self.static_map.keyframes[-1].T_map_cam, stride)))
         del self.depth_views[:-FREE_SPACE_VIEWS]
+
+    def _free_space_since(self, frame: Frame, measurements: FrameMeasurements,
+                          after_frame: int) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_free_space` counted over the static keyframes of frames after ``after_frame``
+        only (the frame's own counts, computed once, when all of them are)."""
+        keyframes = self.static_map.keyframes
+        if all(keyframes[keyframe_id].frame_index > after_frame for keyframe_id, _ in self.depth_views):
+            return self._free_space(frame, measurements)
+        return self._free_space_counts(frame, measurements, self._frame_pose, after_frame=after_frame)
 
     def _free_space_counts(self, frame: Frame, measurements: FrameMeasurements, T_w_c: np.ndarray,
                            after_frame: int | None = None) -> tuple[np.ndarray, np.ndarray]:
