@@ -12,14 +12,19 @@ from jsr.config import load_config
 from jsr.evaluate import object_pose_error
 from jsr.geometry import rotation_angle
 from jsr.io.dataset import open_sequence
-from jsr.pipeline.objects import (
-    DepthView,
-    complete_segments,
-    depth_adjacent_segments,
-    free_space_violations,
-    grow_region,
-)
-from jsr.pipeline.reconstruct import TURN_MEMORY_DEGREES_FACTOR, Reconstructor
+from jsr.pipeline.classify import complete_segments
+from jsr.pipeline.free_space import DepthView, FreeSpaceViews, depth_at_projections, free_space_violations
+from jsr.pipeline.map_merging import merge_maps
+from jsr.pipeline.map_updates import map_would_grow
+from jsr.pipeline.moving_regions import CANDIDATE_DETAIL_FRAMES, where_just_lost
+from jsr.pipeline.ownership import detail_boxes
+from jsr.pipeline.reconstruct import Reconstructor
+from jsr.pipeline.region_growth import grow, grow_region
+from jsr.pipeline.region_motion import TURN_MEMORY_DEGREES_FACTOR, split_by_motion, turn_seen_before
+from jsr.pipeline.segments import depth_adjacent_segments
+from jsr.pipeline.shape_reidentification import landmarks_agree_elsewhere
+from jsr.pipeline.state import DetectionMemory, FrameContext
+from jsr.pipeline.static_hygiene import retire_vacated_landmarks, without_suspects
 from jsr.synth import SynthOptions, generate_sequence
 
 WIDTH, HEIGHT = 320, 240
@@ -444,7 +449,7 @@ def _box_landmarks(rng, count=60):
 
 def _object_map(object_id, positions, descriptors):
     from jsr.pipeline.measurements import PointMeasurements
-    from jsr.pipeline.objects import ObjectMap
+    from jsr.pipeline.maps import ObjectMap
 
     count = len(positions)
     points = PointMeasurements(pixels=np.zeros((count, 2)), points=positions, has_depth=np.ones(count, bool),
@@ -460,7 +465,7 @@ def _object_map(object_id, positions, descriptors):
 def test_two_maps_of_one_object_register_and_merge():
     from scipy.spatial.transform import Rotation
 
-    from jsr.pipeline.objects import merge_object_maps, register_maps
+    from jsr.pipeline.map_merging import merge_object_maps, register_maps
 
     rng = np.random.default_rng(3)
     config = load_config(None, [])
@@ -503,7 +508,7 @@ def test_two_maps_of_one_object_register_and_merge():
 
 
 def test_segments_inside_extent_take_faces_not_the_table():
-    from jsr.pipeline.objects import extent_hull, segments_inside_extent
+    from jsr.pipeline.object_extent import extent_hull, segments_inside_extent
 
     rng = np.random.default_rng(4)
     intrinsics = SimpleNamespace(fx=300.0, fy=300.0, cx=80.0, cy=60.0)
@@ -528,7 +533,7 @@ def test_segments_inside_extent_take_faces_not_the_table():
 def test_pixels_inside_hull_agree_with_every_facet():
     """The few-facet prefilter only skips work: the verdict is that of testing every facet."""
     from jsr.geometry import backproject_pixels, inlier_threshold
-    from jsr.pipeline.objects import extent_hull, pixels_inside_hull
+    from jsr.pipeline.object_extent import extent_hull, pixels_inside_hull
 
     rng = np.random.default_rng(5)
     intrinsics = SimpleNamespace(fx=300.0, fy=300.0, cx=80.0, cy=60.0)
@@ -547,7 +552,7 @@ def test_pixels_inside_hull_agree_with_every_facet():
 
 
 def test_unlabelled_pixels_take_the_owner_of_most_neighbours():
-    from jsr.pipeline.reconstruct import fill_unlabelled
+    from jsr.pipeline.ownership import fill_unlabelled
 
     ownership = np.zeros((40, 40), dtype=np.uint8)
     ownership[10:30, 10:30] = 2
@@ -569,22 +574,23 @@ def test_merging_keeps_ids_masks_and_tracking_state_consistent():
     try:
         box = _box_landmarks(rng, 40) + [0.0, 0.0, 1.0]
         first, second = _object_map(1, box, rng.random((40, 128))), _object_map(2, box, rng.random((40, 128)))
-        reconstructor.object_maps = [first, second]
-        reconstructor._next_object_id = 3
+        state = reconstructor.state
+        state.object_maps = [first, second]
+        state.next_object_id = 3
         mask = np.zeros((120, 160), np.uint8)
         mask[10:20, 10:20] = 2
-        reconstructor.keyframe_masks[20] = mask  # map 2's keyframe is frame 20
+        state.keyframe_masks[20] = mask  # map 2's keyframe is frame 20
         second.last_T_o_c = np.eye(4)
         second.last_T_w_o = np.eye(4)
         T_1_2 = np.eye(4)
         T_1_2[:3, 3] = [0.1, 0.0, 0.0]
-        reconstructor._merge_maps(first, second, T_1_2, 25, "test")
+        merge_maps(state, first, second, T_1_2, 25, "test")
         assert reconstructor.object_maps == [first]
         assert reconstructor.merged_into == {2: 1}
         assert set(np.unique(reconstructor.keyframe_masks[20])) == {0, 1}  # map 2's pixels are map 1's now
         np.testing.assert_allclose(first.last_T_o_c, T_1_2)  # map 2 saw the object last: map 1 goes on from there
         assert [index for index, _, _ in first.trajectory] == [10, 20]
-        assert reconstructor._next_object_id == 3  # a new map gets id 3, not the freed 2
+        assert state.next_object_id == 3  # a new map gets id 3, not the freed 2
     finally:
         reconstructor.close()
 
@@ -596,11 +602,11 @@ def test_object_surfaces_follow_the_object(jump_sequence):
     reconstructor = result.reconstructor
     live = {m.object_id for m in reconstructor.object_maps}
     assert reconstructor.object_maps
-    for samples in reconstructor.object_surfaces.values():
+    for samples in reconstructor.state.surfaces.samples.values():
         assert set(samples) <= live
     poses, _ = true_object_poses(jump_sequence)
     object_map = reconstructor.object_maps[0]
-    model = reconstructor._surface_model(object_map)
+    model = reconstructor.state.surfaces.model(object_map)
     assert model is not None and len(model.points) > 100
     # The model, put in the world with the map's pose at its first frame, lies on the object:
     # in the object's true frame its points are within the box's half diagonal (plus noise).
@@ -627,13 +633,14 @@ def test_vacated_landmarks_are_retired_only_once_something_moved(jump_sequence):
     far = SimpleNamespace(depth=np.full((HEIGHT, WIDTH), 20.0, dtype=np.float32))  # everything seen through
     not_matched = SimpleNamespace(bridged=True)  # no registration inliers to spare
     active_before = reconstructor.static_map.points.active.copy()
+    state = reconstructor.state
     for _ in range(3):
-        reconstructor._retire_vacated_landmarks(far, T_w_c, not_matched)
+        retire_vacated_landmarks(state, far, T_w_c, not_matched)
     np.testing.assert_array_equal(reconstructor.static_map.points.active, active_before)
-    reconstructor._next_object_id = 2  # as if object 1 had been detected
-    reconstructor._retire_vacated_landmarks(far, T_w_c, not_matched)
+    state.next_object_id = 2  # as if object 1 had been detected
+    retire_vacated_landmarks(state, far, T_w_c, not_matched)
     np.testing.assert_array_equal(reconstructor.static_map.points.active, active_before)  # once is not enough
-    reconstructor._retire_vacated_landmarks(far, T_w_c, not_matched)
+    retire_vacated_landmarks(state, far, T_w_c, not_matched)
     retired = active_before & ~reconstructor.static_map.points.active
     assert retired.sum() > 50
 
@@ -651,14 +658,14 @@ def test_vacated_retirement_reaches_landmarks_of_old_keyframes(jump_sequence):
     recent = static_map.recent_point_landmarks(1)
     old_only = np.setdiff1d(np.flatnonzero(static_map.points.active), recent)
     assert len(old_only) > 20
-    reconstructor._next_object_id = 2  # as if object 1 had been detected
+    reconstructor.state.next_object_id = 2  # as if object 1 had been detected
     T_w_c = result.reports[-1].T_w_c
     far = SimpleNamespace(depth=np.full((HEIGHT, WIDTH), 20.0, dtype=np.float32))  # everything seen through
     in_view = _static_landmark_pixels(reconstructor, T_w_c)[0]
     old_in_view = np.intersect1d(old_only, in_view)
     assert len(old_in_view) > 20
     for _ in range(2):
-        reconstructor._retire_vacated_landmarks(far, T_w_c, SimpleNamespace(bridged=True))
+        retire_vacated_landmarks(reconstructor.state, far, T_w_c, SimpleNamespace(bridged=True))
     assert not static_map.points.active[old_in_view].any()
 
 
@@ -668,7 +675,7 @@ def _static_landmark_pixels(reconstructor, T_w_c):
     points = reconstructor.static_map.points
     ids = reconstructor.static_map.recent_point_landmarks(None)
     camera = (points.positions[ids] - T_w_c[:3, 3]) @ T_w_c[:3, :3]
-    (u, v), inside, _ = reconstructor._depth_at_projections(camera, np.zeros((HEIGHT, WIDTH)))
+    (u, v), inside, _ = depth_at_projections(camera, np.zeros((HEIGHT, WIDTH)), reconstructor.intrinsics)
     return ids[inside], np.stack([u[inside], v[inside]], axis=1), camera[inside, 2]
 
 
@@ -679,7 +686,7 @@ def test_vacated_retirement_spares_a_surface_beside_the_pixel(jump_sequence, win
     overrides = ["objects.retire_after_vacated=2", f"objects.vacated_window_px={window_px}"]
     result = run(jump_sequence, overrides, sequence=open_sequence(jump_sequence, max_frames=4))
     reconstructor = result.reconstructor
-    reconstructor._next_object_id = 2  # as if object 1 had been detected
+    reconstructor.state.next_object_id = 2  # as if object 1 had been detected
     T_w_c = result.reports[-1].T_w_c
     ids, pixels, depths = _static_landmark_pixels(reconstructor, T_w_c)
     edge = np.full((HEIGHT, WIDTH), 20.0, dtype=np.float32)
@@ -689,7 +696,7 @@ def test_vacated_retirement_spares_a_surface_beside_the_pixel(jump_sequence, win
     frame = SimpleNamespace(depth=edge)
     active_before = reconstructor.static_map.points.active.copy()
     for _ in range(2):
-        reconstructor._retire_vacated_landmarks(frame, T_w_c, SimpleNamespace(bridged=True))
+        retire_vacated_landmarks(reconstructor.state, frame, T_w_c, SimpleNamespace(bridged=True))
     retired = active_before & ~reconstructor.static_map.points.active
     if window_px:
         assert retired.sum() == 0
@@ -706,7 +713,7 @@ def test_vacated_retirement_needs_an_area_seen_through(jump_sequence, cluster_si
     sequence = open_sequence(jump_sequence, max_frames=4)
     result = run(jump_sequence, overrides, sequence=sequence)
     reconstructor = result.reconstructor
-    reconstructor._next_object_id = 2
+    reconstructor.state.next_object_id = 2
     T_w_c = result.reports[-1].T_w_c
     ids, pixels, _ = _static_landmark_pixels(reconstructor, T_w_c)
     # the landmark farthest in the image from any other: a hole around it holds it alone
@@ -718,7 +725,7 @@ def test_vacated_retirement_needs_an_area_seen_through(jump_sequence, cluster_si
     depth[max(v - 2, 0):v + 3, max(u - 2, 0):u + 3] = 20.0
     frame = SimpleNamespace(depth=depth)
     for _ in range(2):
-        reconstructor._retire_vacated_landmarks(frame, T_w_c, SimpleNamespace(bridged=True))
+        retire_vacated_landmarks(reconstructor.state, frame, T_w_c, SimpleNamespace(bridged=True))
     assert reconstructor.static_map.points.active[ids[alone]] == (cluster_size > 0)
 
 
@@ -726,21 +733,21 @@ def test_young_object_map_takes_in_the_rest_of_its_object():
     """objects.grow_keyframe_ratio: a frame holding at least that many times the map's
     landmarks in new 3D measurements of the object makes a keyframe, whatever the view."""
     config = load_config(None)
-    owner = SimpleNamespace(config=config)
     object_map = SimpleNamespace(points=SimpleNamespace(active_count=26))
     points = SimpleNamespace(has_depth=np.ones(200, dtype=bool))
     own = np.arange(100)
     landmark_of = np.full(200, -1)
     landmark_of[:20] = np.arange(20)  # 20 matched, 80 new
-    assert Reconstructor._map_would_grow(owner, object_map, points, own, landmark_of)
+    assert map_would_grow(config, object_map, points, own, landmark_of)
     landmark_of[:80] = np.arange(80)  # 20 new: fewer than the map's 26 landmarks
-    assert not Reconstructor._map_would_grow(owner, object_map, points, own, landmark_of)
+    assert not map_would_grow(config, object_map, points, own, landmark_of)
     points.has_depth[:] = False  # 2D measurements make no landmarks
     landmark_of[:] = -1
-    assert not Reconstructor._map_would_grow(owner, object_map, points, own, landmark_of)
-    owner.config = load_config(None, ["objects.grow_keyframe_ratio=0"])
+    assert not map_would_grow(config, object_map, points, own, landmark_of)
     points.has_depth[:] = True
-    assert not Reconstructor._map_would_grow(owner, object_map, points, own, landmark_of)
+    assert map_would_grow(config, object_map, points, own, landmark_of)
+    assert not map_would_grow(load_config(None, ["objects.grow_keyframe_ratio=0"]), object_map, points, own,
+                              landmark_of)
 
 
 @pytest.fixture(scope="module")
@@ -769,17 +776,16 @@ def test_object_turning_about_itself_is_detected(turning_sequence, turn_degrees)
 def test_moving_region_too_poor_to_start_gets_detail_boxes(jump_sequence):
     """A moving region with too few 3D points to start a map is looked at closer (detail
     keypoints) in the next CANDIDATE_DETAIL_FRAMES frames, then forgotten."""
-    from jsr.pipeline.reconstruct import CANDIDATE_DETAIL_FRAMES
-
     sequence = open_sequence(jump_sequence, max_frames=1)
     reconstructor = Reconstructor(load_config(None, ["features.object_detail=true"]), sequence.intrinsics)
-    reconstructor._candidate_boxes.append(((100, 80, 140, 120), 5 + CANDIDATE_DETAIL_FRAMES))
+    state = reconstructor.state
+    state.memory.candidate_boxes.append(((100, 80, 140, 120), 5 + CANDIDATE_DETAIL_FRAMES))
     margin = reconstructor.config.features.object_detail_margin
     grown = int(round(margin * 40))
-    assert reconstructor._detail_boxes(6) == [(100 - grown, 80 - grown, 140 + grown, 120 + grown)]
-    assert reconstructor._detail_boxes(5 + CANDIDATE_DETAIL_FRAMES) != []
-    assert reconstructor._detail_boxes(6 + CANDIDATE_DETAIL_FRAMES) == []
-    assert not reconstructor._candidate_boxes
+    assert detail_boxes(state, 6) == [(100 - grown, 80 - grown, 140 + grown, 120 + grown)]
+    assert detail_boxes(state, 5 + CANDIDATE_DETAIL_FRAMES) != []
+    assert detail_boxes(state, 6 + CANDIDATE_DETAIL_FRAMES) == []
+    assert not state.memory.candidate_boxes
     reconstructor.close()
 
 
@@ -1011,7 +1017,7 @@ def test_turn_is_confirmed_by_the_same_turn_in_a_recent_frame():
     from scipy.spatial.transform import Rotation
 
     config = load_config(None)
-    owner = SimpleNamespace(config=config, _recent_turns=[])
+    memory = DetectionMemory()
     rng = np.random.default_rng(0)
     camera_points = rng.uniform([-0.1, -0.1, 1.5], [0.1, 0.1, 1.7], (30, 3))
     points = SimpleNamespace(points=camera_points, has_depth=np.ones(30, dtype=bool))
@@ -1026,8 +1032,7 @@ def test_turn_is_confirmed_by_the_same_turn_in_a_recent_frame():
     turn[:3, 3] = [0.3, 0.0, -0.9]
     other = turn.copy()
     other[:3, 3] += [0.05, 0.0, 0.0]  # the same rotation, 5 cm elsewhere
-    seen = lambda frame_index, T_w_old: Reconstructor._turn_seen_before(owner, measured(frame_index), [0], T_w_c,
-                                                                        T_w_old)
+    seen = lambda frame_index, T_w_old: turn_seen_before(config, memory, measured(frame_index), [0], T_w_c, T_w_old)
     assert not seen(10, turn)  # nothing remembered yet
     assert not seen(11, other)
     assert seen(12, turn)  # frame 10's turn
@@ -1040,54 +1045,49 @@ def test_turn_is_confirmed_by_the_same_turn_in_a_recent_frame():
         about_centroid[:3, 3] = centroid - about_centroid[:3, :3] @ centroid
         return turn @ about_centroid
 
-    owner._recent_turns = [(12, turn)]
+    memory.recent_turns = [(12, turn)]
     assert not seen(13, turned_about_centroid(1.5 * tolerance))  # the same old place, another rotation
-    owner._recent_turns = [(12, turn)]
+    memory.recent_turns = [(12, turn)]
     assert seen(13, turned_about_centroid(0.75 * tolerance))  # the same turn, fitted again to a few points
-    memory = config.detection.in_place_turn_memory_frames
-    owner._recent_turns = []
+    memory_frames = config.detection.in_place_turn_memory_frames
+    memory.recent_turns = []
     assert not seen(20, turn)
-    assert seen(20 + memory, turn)  # just within the memory
-    owner._recent_turns = []
+    assert seen(20 + memory_frames, turn)  # just within the memory
+    memory.recent_turns = []
     assert not seen(30, turn)
-    assert not seen(30 + memory + 1, turn)  # too long ago
+    assert not seen(30 + memory_frames + 1, turn)  # too long ago
 
 
-def test_suspect_segments_give_the_static_keyframe_only_their_inliers(monkeypatch):
+def test_suspect_segments_give_the_static_keyframe_only_their_inliers():
     """objects.hold_back_suspects: points and planes of this frame's suspect segments that are
     no static inliers do not become static landmarks; all others do."""
-    from jsr.pipeline import reconstruct as module
-
-    owner = SimpleNamespace(_suspect_segments=[1])
     segments = SimpleNamespace(segment_of_points=lambda n: np.array([0, 0, 1, 1, 1, -1]),
                                plane_index=np.array([0, 1, -1]))  # plane 0 is segment 0, plane 1 segment 1
     measurements = SimpleNamespace(points=np.zeros(6), planes=np.zeros(2), segments=segments, frame_index=7)
-    monkeypatch.setattr(module, "inlier_mask", lambda matched, result, n, m: (
+    ctx = SimpleNamespace(suspects=[1], measurements=measurements, static_inliers=lambda: (
         np.array([True, False, True, False, False, False]), np.array([False, False])))
-    points, planes = Reconstructor._without_suspects(owner, measurements, SimpleNamespace(matched=None, result=None),
-                                                     np.arange(6), np.arange(2))
+    points, planes = without_suspects(ctx, np.arange(6), np.arange(2))
     assert points.tolist() == [0, 1, 2, 5]
     assert planes.tolist() == [0]
 
 
 def test_landmarks_in_space_seen_empty_are_phantoms():
-    """Reconstructor._in_free_space: a static landmark the latest static keyframe saw through
+    """FreeSpaceViews.in_free_space: a static landmark the latest static keyframe saw through
     (its wall 3 m away, the landmark at 2 m) is a phantom, whatever lies on or behind the
-    wall, or outside the view, is not."""
+    wall, or outside the view, is not; nothing is with free-space tests off."""
     from jsr.synth import synth_intrinsics
 
     intrinsics = synth_intrinsics(160, 120)
-    reconstructor = Reconstructor(load_config(None), intrinsics)
-    reconstructor.static_map.keyframes = [SimpleNamespace(T_map_cam=np.eye(4))]  # the view's keyframe
-    reconstructor.depth_views.append((0, DepthView(np.full((30, 40), 3.0, dtype=np.float32), np.eye(4), 4)))
+    keyframes = [SimpleNamespace(T_map_cam=np.eye(4))]  # the view's keyframe
     points = np.array([[0.0, 0.0, 2.0],  # in front of the wall: seen through
                        [0.1, 0.0, 2.95],  # on the wall
                        [0.0, 0.1, 3.5],  # behind it
                        [5.0, 0.0, 2.0]])  # outside the view
-    assert reconstructor._in_free_space(points).tolist() == [True, False, False, False]
-    assert not Reconstructor(load_config(None, ["objects.free_space_detection=false"]), intrinsics)._in_free_space(
-        points).any()
-    reconstructor.close()
+    for overrides, expected in (([], [True, False, False, False]),
+                                (["objects.free_space_detection=false"], [False] * 4)):
+        views = FreeSpaceViews(load_config(None, overrides), intrinsics)
+        views.views.append((0, DepthView(np.full((30, 40), 3.0, dtype=np.float32), np.eye(4), 4)))
+        assert views.in_free_space(keyframes, points).tolist() == expected
 
 
 @pytest.fixture(scope="module")
@@ -1121,7 +1121,7 @@ class _FramePoints(SimpleNamespace):
 
 
 class _FrameSegments:
-    """Just the segment interface :meth:`Reconstructor._grow` reads."""
+    """Just the segment interface :func:`~jsr.pipeline.region_growth.grow` reads."""
 
     def __init__(self, point_indices):
         self.point_indices = [np.asarray(indices, dtype=np.int64) for indices in point_indices]
@@ -1136,6 +1136,13 @@ class _FrameSegments:
         return owner
 
 
+
+def _frame_context(measurements, **computed) -> FrameContext:
+    """A frame context at the identity camera pose, bridged (no static matches), with the given
+    per-frame values (``adjacency``, ``free_space``) already computed."""
+    return FrameContext(frame=SimpleNamespace(), measurements=measurements, report=SimpleNamespace(T_w_c=np.eye(4)),
+                        timings={}, static=SimpleNamespace(bridged=True), **computed)
+
 @pytest.mark.parametrize("violations, grown", [(20, [0, 1]), (5, [0])])
 def test_face_with_few_3d_features_grows_into_its_object_when_it_moved_in(violations, grown):
     """A face next to a tracked object seen at a grazing angle (10 features, 2 with depth)
@@ -1149,12 +1156,10 @@ def test_face_with_few_3d_features_grows_into_its_object_when_it_moved_in(violat
     has_depth[22:30] = False  # the grazing face: 2 of its 10 features have depth
     has_depth[32:40] = False  # ... and so has the segment beside it that stayed where it was
     measurements = SimpleNamespace(segments=segments, points=_FramePoints(has_depth=has_depth))
-    reconstructor._frame_pose = np.eye(4)
-    reconstructor._static_matched = np.zeros(40, dtype=bool)
-    reconstructor._adjacency_cache = np.array([[0, 1], [0, 2]])
-    reconstructor._free_space_cache = (np.array([0, violations, 0]), np.array([0, 40 - violations, 40]))
+    ctx = _frame_context(measurements, adjacency=np.array([[0, 1], [0, 2]]),
+                         free_space=(np.array([0, violations, 0]), np.array([0, 40 - violations, 40])))
     owner = np.array([1, 0, 0])
-    assert reconstructor._grow(SimpleNamespace(), measurements, [0], np.zeros(40, dtype=bool), owner) == grown
+    assert grow(reconstructor.state, ctx, [0], np.zeros(40, dtype=bool), owner) == grown
     reconstructor.close()
 
 
@@ -1180,39 +1185,37 @@ def test_segment_inside_the_extent_where_the_static_keyframes_saw_a_surface_stay
     segments.pixel_counts = [960, 960, segment_2_pixels]  # free-space samples: every 4th pixel of every 4th row
     measurements = SimpleNamespace(segments=segments, points=_FramePoints(has_depth=np.ones(40, dtype=bool)),
                                    frame_index=30)
-    reconstructor._frame_pose = np.eye(4)
-    reconstructor._static_matched = np.zeros(40, dtype=bool)
-    reconstructor._adjacency_cache = np.array([[0, 1], [0, 2]])
     # segment 1: too few samples for a free-space verdict; segment 2: all 40 tested on a surface
-    # seen before
-    reconstructor._free_space_cache = (np.array([0, 0, 0]), np.array([0, 2, 40]))
+    # seen before ...
+    counts = (np.array([0, 0, 0]), np.array([0, 2, 40]))
+    ctx = _frame_context(measurements, adjacency=np.array([[0, 1], [0, 2]]), free_space=counts)
     # ... by the static keyframes taken since the object's map began (the object left out of them)
     since = []
-    reconstructor._free_space_since = lambda frame, measurements, after_frame: since.append(after_frame) or \
-        reconstructor._free_space_cache
+    ctx.free_space_since = lambda state, after_frame: since.append(after_frame) or counts
     owner = np.array([1, 0, 0])
     inside = np.array([False, True, True])
-    assert reconstructor._grow(SimpleNamespace(), measurements, [0], np.zeros(40, dtype=bool), owner, inside,
-                               known_since=7) == grown
+    assert grow(reconstructor.state, ctx, [0], np.zeros(40, dtype=bool), owner, inside, known_since=7) == grown
     assert since == ([7] if unseen_only else [])
     reconstructor.close()
 
 
 def test_free_space_since_a_frame_counts_only_later_keyframes():
-    """Reconstructor._free_space_since: the static keyframes of frames after the given one;
+    """FrameContext.free_space_since: the static keyframes of frames after the given one;
     when all the kept ones are, the frame's own (cached) counts, not computed again."""
     from jsr.synth import synth_intrinsics
 
     reconstructor = Reconstructor(load_config(None), synth_intrinsics(640, 480))
-    reconstructor.static_map.keyframes = [SimpleNamespace(frame_index=5), SimpleNamespace(frame_index=9)]
-    reconstructor.depth_views = [(0, None), (1, None)]
-    reconstructor._frame_pose = np.eye(4)
-    reconstructor._free_space_cache = ("all views",)
+    state = reconstructor.state
+    state.static_map.keyframes = [SimpleNamespace(frame_index=5), SimpleNamespace(frame_index=9)]
+    state.free_space.views = [(0, None), (1, None)]
+    segments = _FrameSegments([])
+    segments.label_image = None
+    ctx = _frame_context(SimpleNamespace(segments=segments), free_space=("all views",))
     asked = []
-    reconstructor._free_space_counts = lambda frame, measurements, T_w_c, after_frame=None: asked.append(
+    state.free_space.counts = lambda keyframes, depth, labels, count, T_w_c, after_frame=None: asked.append(
         after_frame) or ("later views",)
-    assert reconstructor._free_space_since(None, None, 3) == ("all views",) and asked == []
-    assert reconstructor._free_space_since(None, None, 7) == ("later views",) and asked == [7]
+    assert ctx.free_space_since(state, 3) == ("all views",) and asked == []
+    assert ctx.free_space_since(state, 7) == ("later views",) and asked == [7]
     reconstructor.close()
 
 
@@ -1222,28 +1225,24 @@ def test_free_space_since_a_frame_counts_only_later_keyframes():
     ((0.0, 0.0, 0.3), 0.0, [[0, 1, 2]]),  # detection.split_motion_distance 0: off
 ])
 def test_touching_moving_segments_that_moved_apart_start_separate_maps(second_shift, limit, expected):
-    """Reconstructor._split_by_motion: segments 0 and 1 touch and both moved this frame, by the
+    """region_motion.split_by_motion: segments 0 and 1 touch and both moved this frame, by the
     motions their outliers agree on; segment 2 (no motion of its own, found by free space) lies
     beside segment 1 in the image. synth_two_sim seed 13: a box and a cylinder moved 0.72 m and
     0.42 m in one frame and made one map."""
     from jsr.geometry import make_transform
-    from jsr.synth import synth_intrinsics
 
     config = load_config(None, [f"detection.split_motion_distance={limit}"])
-    reconstructor = Reconstructor(config, synth_intrinsics(640, 480))
     segments = _FrameSegments([np.arange(0, 5), np.arange(5, 10), np.arange(10, 15)])
     segments.label_image = np.repeat(np.repeat(np.arange(3), 10)[None], 10, axis=0)  # columns 0-9, 10-19, 20-29
     camera_points = np.column_stack([np.linspace(-0.3, 0.3, 15), np.zeros(15), np.full(15, 1.5)])
     measurements = SimpleNamespace(segments=segments, frame_index=10,
                                    points=_FramePoints(has_depth=np.ones(15, dtype=bool), points=camera_points))
-    reconstructor._frame_motions = [([0], make_transform(np.eye(3), [0.3, 0.0, 0.0])),
-                                    ([1], make_transform(np.eye(3), second_shift))]
-    assert reconstructor._split_by_motion(measurements, [0, 1, 2], np.eye(4)) == expected
-    reconstructor.close()
+    motions = [([0], make_transform(np.eye(3), [0.3, 0.0, 0.0])), ([1], make_transform(np.eye(3), second_shift))]
+    assert split_by_motion(config, measurements, motions, [0, 1, 2], np.eye(4)) == expected
 
 
 def test_landmarks_that_agree_from_two_far_fits_overrule_the_surface():
-    """Reconstructor._landmarks_agree_elsewhere: landmark registrations away from the surface
+    """shape_reidentification.landmarks_agree_elsewhere: landmark registrations away from the surface
     fits that predicted them are trusted only when two fits far apart (beyond 20 cm or 30
     degrees of each other) led them to the same pose of the same object."""
     from jsr.geometry import make_transform, rotation_about_axis
@@ -1262,7 +1261,7 @@ def test_landmarks_that_agree_from_two_far_fits_overrule_the_surface():
     box, other_box = object(), object()
     first = (box, about_centre(180.0), "matches", registration(truth, 9))
     second = (box, about_centre(80.0), "matches", registration(about_centre(21.0, (0.052, 0.0, 0.0)), 11))
-    agree = Reconstructor._landmarks_agree_elsewhere
+    agree = landmarks_agree_elsewhere
     assert agree([first, second], centre) is second  # the one with most inliers
     assert agree([first], centre) is None  # one registration away from its fit: maybe chance
     near_first = (box, about_centre(170.0), "matches", registration(truth, 12))
@@ -1273,7 +1272,7 @@ def test_landmarks_that_agree_from_two_far_fits_overrule_the_surface():
 
 
 def test_segments_where_a_just_lost_object_was_are_its_candidates():
-    """Reconstructor._where_just_lost (detection.where_lost): of the candidate segments, those
+    """moving_regions.where_just_lost (detection.where_lost): of the candidate segments, those
     at least half inside the previous frame's pixels of an object that this frame lost; not
     those of an object still tracked, nor of one that was lost already a frame ago."""
     from jsr.synth import synth_intrinsics
@@ -1282,8 +1281,9 @@ def test_segments_where_a_just_lost_object_was_are_its_candidates():
     previous = np.zeros((8, 16), dtype=np.uint8)
     previous[:, :8] = 1  # object 1 held the left half
     previous[:, 12:] = 2  # object 2 the right quarter
-    reconstructor._previous_mask = previous
-    reconstructor.reports = [SimpleNamespace(objects_tracked=[1, 2])]
+    state = reconstructor.state
+    state.memory.previous_mask = previous
+    state.reports[:] = [SimpleNamespace(objects_tracked=[1, 2])]
     labels = np.zeros((8, 16), dtype=np.int64)
     labels[:, 4:10] = 1  # two thirds over object 1's place
     labels[:, 10:14] = 2  # half over object 2's
@@ -1292,18 +1292,19 @@ def test_segments_where_a_just_lost_object_was_are_its_candidates():
     measurements = SimpleNamespace(segments=SimpleNamespace(
         label_image=labels, pixel_counts=np.bincount(labels[labels >= 0], minlength=4)))
 
-    def outcomes(lost):
-        return [SimpleNamespace(success=object_id not in lost, object_map=SimpleNamespace(object_id=object_id))
-                for object_id in (1, 2)]
+    def candidates(segments, lost):
+        outcomes = [SimpleNamespace(success=object_id not in lost, object_map=SimpleNamespace(object_id=object_id))
+                    for object_id in (1, 2)]
+        return where_just_lost(state, SimpleNamespace(measurements=measurements, outcomes=outcomes), segments)
 
-    assert reconstructor._where_just_lost(measurements, [0, 1, 2, 3], outcomes({1})) == [0, 1]
-    assert reconstructor._where_just_lost(measurements, [1, 2, 3], outcomes({2})) == [2, 3]
-    assert reconstructor._where_just_lost(measurements, [0, 1, 2, 3], outcomes(set())) == []
-    reconstructor.reports = [SimpleNamespace(objects_tracked=[2])]  # object 1 lost before: no hint here
-    assert reconstructor._where_just_lost(measurements, [0, 1], outcomes({1})) == []
+    assert candidates([0, 1, 2, 3], {1}) == [0, 1]
+    assert candidates([1, 2, 3], {2}) == [2, 3]
+    assert candidates([0, 1, 2, 3], set()) == []
+    state.reports[:] = [SimpleNamespace(objects_tracked=[2])]  # object 1 lost before: no hint here
+    assert candidates([0, 1], {1}) == []
     reconstructor.config.detection.where_lost = False
-    reconstructor.reports = [SimpleNamespace(objects_tracked=[1, 2])]
-    assert reconstructor._where_just_lost(measurements, [0, 1, 2, 3], outcomes({1, 2})) == []
+    state.reports[:] = [SimpleNamespace(objects_tracked=[1, 2])]
+    assert candidates([0, 1, 2, 3], {1, 2}) == []
     reconstructor.close()
 
 
@@ -1465,6 +1466,7 @@ def test_surface_alignment_is_drawn_again_while_nothing_is_kept(monkeypatch):
     """objects.shape_attempts: a region that no alignment explains is aligned again (RANSAC may
     miss the right alignment once), and no more once one is kept; the region's surface is
     sampled once for all attempts."""
+    from jsr.pipeline import shape_reidentification
     from jsr.synth import synth_intrinsics
 
     labels = np.full((240, 320), -1, dtype=np.int32)
@@ -1478,8 +1480,10 @@ def test_surface_alignment_is_drawn_again_while_nothing_is_kept(monkeypatch):
                                       synth_intrinsics(320, 240))
         answers = iter(results)
         seen = []
-        monkeypatch.setattr(reconstructor, "_align_to_lost_objects", lambda *args: seen.append(args) or next(answers))
-        assert reconstructor._reidentify_by_shape(frame, measurements, [3], None, [], {}, None) is found
+        monkeypatch.setattr(shape_reidentification, "align_to_lost_objects",
+                            lambda *args: seen.append(args) or next(answers))
+        ctx = SimpleNamespace(frame=frame, measurements=measurements)
+        assert shape_reidentification.reidentify_by_shape(reconstructor.state, ctx, [3], None, [], {}) is found
         assert len(seen) == calls
         assert all(args[4] is seen[0][4] for args in seen)  # one region model, reused
         reconstructor.close()

@@ -17,7 +17,7 @@ import numpy as np
 from jsr.config import Config
 from jsr.io.dataset import RGBDSequence
 from jsr.io.writers import write_geometry_ply
-from jsr.pipeline.maps import Map
+from jsr.pipeline.maps import Map, map_folder
 
 logger = logging.getLogger(__name__)
 
@@ -121,8 +121,6 @@ def write_dense_models(reconstructor, sequence: RGBDSequence, config: Config, ou
     for map_ in reconstructor.maps:
         if not map_.keyframes:
             continue
-        from jsr.pipeline.run import map_folder
-
         folder = Path(out_dir) / map_folder(map_)
         mask_of = getattr(reconstructor, "keyframe_pixel_mask", None)
         mesh, cloud = fuse_keyframes(

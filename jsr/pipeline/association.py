@@ -164,3 +164,17 @@ def sample_colors(frame: Frame, pixels: np.ndarray) -> np.ndarray:
     u = np.clip(np.round(pixels[:, 0]).astype(int), 0, width - 1)
     v = np.clip(np.round(pixels[:, 1]).astype(int), 0, height - 1)
     return frame.color[v, u]
+
+
+def inlier_mask(matched: MatchedFrame | None, result: RegistrationResult | None, num_points: int,
+                num_planes: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(N,)`` and ``(P,)`` bool: frame point and plane measurements that are inliers of a
+    successful registration (all False otherwise)."""
+    points = np.zeros(num_points, dtype=bool)
+    planes = np.zeros(num_planes, dtype=bool)
+    if matched is None or result is None or not result.success:
+        return points, planes
+    point_inliers = np.concatenate([result.inliers_point3d, result.inliers_point2d]).astype(bool)
+    points[matched.point_measurements[point_inliers]] = True
+    planes[matched.plane_measurements[np.asarray(result.inliers_plane, dtype=bool)]] = True
+    return points, planes

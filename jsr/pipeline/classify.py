@@ -16,15 +16,28 @@ When several object maps claim one measurement, a matching-segment claim beats a
 claim; between claims of the same kind, the object map with more inliers wins (its counted
 inliers: the union of the successful frame- and segment-based inlier masks, points plus
 planes), and on equal counts the smaller ``object_id``.
+
+Beyond the paper, :func:`classify_frame` completes segments (a segment whose registered
+inliers mostly belong to one object goes to that object as a whole), grows objects into the
+depth-adjacent segments nothing shows to be static, and splits segments that span an object and
+the static scene.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from jsr.pipeline.association import inlier_mask
 from jsr.pipeline.measurements import Segments
+from jsr.pipeline.object_extent import extent_hull, pixels_inside_hull, segments_inside_extent
+from jsr.pipeline.object_registration import ObjectTrackingResult
+from jsr.pipeline.region_growth import grow
+from jsr.pipeline.state import FrameAssignment, FrameContext, SceneState
+
+logger = logging.getLogger(__name__)
 
 STATIC = 0
 
@@ -163,3 +176,158 @@ def classify_measurements(
         dtype=np.int64,
     ).reshape(len(registrations), num_planes)
     return _resolve(point_claims, rank, object_ids), _resolve(plane_claims, rank, object_ids)
+
+
+def segment_votes(
+    point_segment: np.ndarray, num_segments: int, owner: np.ndarray, counted: np.ndarray, num_owners: int
+) -> np.ndarray:
+    """``(S, num_owners)`` counts of the counted point measurements of each segment per owner.
+
+    ``point_segment`` ``(N,)`` segment of each point (-1: none); ``owner`` ``(N,)`` owner index
+    in ``[0, num_owners)``; ``counted`` ``(N,)`` bool.
+    """
+    keep = counted & (point_segment >= 0)
+    votes = np.zeros((num_segments, num_owners), dtype=np.int64)
+    np.add.at(votes, (point_segment[keep], owner[keep]), 1)
+    return votes
+
+
+def complete_segments(
+    point_segment: np.ndarray,
+    num_segments: int,
+    point_owner: np.ndarray,
+    evidence: np.ndarray,
+    object_ids: list[int],
+    min_votes: int,
+) -> np.ndarray:
+    """``(S,)`` owner of every segment: an object id when that object's registration inliers
+    outnumber every other map's inliers in the segment (and reach ``min_votes``), else 0.
+
+    ``point_owner`` ``(N,)`` owner after Algorithm 1; ``evidence`` ``(N,)`` bool: points that
+    are inliers of the registration of their owner (static or object).
+    """
+    if not object_ids:
+        return np.zeros(num_segments, dtype=np.int64)
+    columns = {0: 0} | {object_id: i + 1 for i, object_id in enumerate(object_ids)}
+    owner_column = np.array([columns.get(int(o), 0) for o in point_owner], dtype=np.int64)
+    votes = segment_votes(point_segment, num_segments, owner_column, evidence, len(columns))
+    best_object = 1 + np.argmax(votes[:, 1:], axis=1)
+    best_votes = votes[np.arange(num_segments), best_object]
+    others = votes.sum(axis=1) - best_votes
+    wins = (best_votes >= min_votes) & (best_votes > others)
+    ids = np.array([0] + list(object_ids), dtype=np.int64)
+    return np.where(wins, ids[best_object], 0)
+
+
+def classify_frame(state: SceneState, ctx: FrameContext) -> None:
+    """Algorithm 1 (lines 14-24) over the frame's object registrations (``ctx.outcomes``),
+    then segment completion (``objects.segment_completion``), growth into depth-adjacent
+    unsupported segments (``objects.grow_segments``) and the split of segments that span an
+    object and the static scene (``objects.split_mixed_segments``): sets ``ctx.assignment``."""
+    config, frame, measurements, outcomes = state.config, ctx.frame, ctx.measurements, ctx.outcomes
+    points, planes, segments = measurements.points, measurements.planes, measurements.segments
+    num_points, num_planes = len(points), len(planes)
+    point_segment = segments.segment_of_points(num_points)
+    plane_segment = segment_of_planes(segments, num_planes)
+    registrations = []
+    for outcome in outcomes:
+        frame_points, frame_planes = inlier_mask(outcome.frame_matched, outcome.frame_result, num_points,
+                                                 num_planes)
+        segment_points, segment_planes = inlier_mask(outcome.segment_matched, outcome.segment_result,
+                                                     num_points, num_planes)
+        registrations.append(ObjectRegistration(
+            object_id=outcome.object_map.object_id,
+            frame_success=outcome.frame_success,
+            frame_inliers_points=frame_points,
+            frame_inliers_planes=frame_planes,
+            segment_success=outcome.segment_success,
+            matching_segments=list(outcome.seed_segments),
+            segment_inliers_points=segment_points,
+            segment_inliers_planes=segment_planes,
+        ))
+    point_owner, plane_owner = classify_measurements(num_points, num_planes, point_segment, plane_segment,
+                                                     registrations)
+    segment_owner = np.zeros(len(segments), dtype=np.int64)
+    tracked = [r for r in registrations if r.frame_success or r.segment_success]
+    static_inliers, _ = ctx.static_inliers()
+    by_id = {o.object_map.object_id: o for o in outcomes if o.success}
+    hulls = {object_id: extent_hull(state.surfaces.extent_points(o.object_map))
+             for object_id, o in by_id.items()}  # each object's extent, once per frame
+    if tracked and config.objects.segment_completion:
+        # Evidence: points that are inliers of the registration of the map they were given to.
+        evidence = static_inliers & (point_owner == 0)
+        for r in tracked:
+            evidence |= (point_owner == r.object_id) & (r.frame_inliers_points | r.segment_inliers_points)
+        segment_owner = complete_segments(point_segment, len(segments), point_owner, evidence,
+                                          [r.object_id for r in tracked], config.detection.min_segment_features)
+        for r in tracked:
+            own = np.flatnonzero(segment_owner == r.object_id).tolist()
+            inside = None if not config.objects.grow_inside_extent else segments_inside_extent(
+                segments.label_image, frame.depth, state.intrinsics, by_id[r.object_id].T_o_c, hulls[r.object_id],
+                config.noise, len(segments), config.objects.extent_margin, config.objects.extent_share)
+            grown = grow(state, ctx, own, static_inliers, segment_owner, inside,
+                         by_id[r.object_id].object_map.created_at_frame)
+            segment_owner[[s for s in grown if segment_owner[s] == 0]] = r.object_id
+        # Features and planes inside an object's segment go to that object, matched or not:
+        # new views of the object grow its map instead of leaking into the static map.
+        in_object_segment = (point_segment >= 0) & (segment_owner[np.maximum(point_segment, 0)] > 0)
+        point_owner = np.where(in_object_segment, segment_owner[np.maximum(point_segment, 0)], point_owner)
+        plane_in_object = (plane_segment >= 0) & (segment_owner[np.maximum(plane_segment, 0)] > 0)
+        plane_owner = np.where(plane_in_object, segment_owner[np.maximum(plane_segment, 0)], plane_owner)
+    for r in tracked:  # the seed segments of segment-based registration belong to their object
+        for segment in r.matching_segments if r.segment_success else []:
+            segment_owner[segment] = r.object_id
+    assignment = FrameAssignment(point_owner.astype(np.int64), plane_owner.astype(np.int64), segment_owner)
+    if tracked and config.objects.split_mixed_segments:
+        object_inliers = np.zeros(num_points, dtype=bool)
+        for r in tracked:
+            object_inliers |= r.frame_inliers_points | r.segment_inliers_points
+        split_mixed_segments(state, ctx, assignment, static_inliers & ~object_inliers, by_id, hulls)
+    ctx.assignment = assignment
+
+
+def split_mixed_segments(state: SceneState, ctx: FrameContext, assignment: FrameAssignment,
+                         static_evidence: np.ndarray, outcomes: dict[int, ObjectTrackingResult], hulls: dict) -> None:
+    """Beyond the paper, which takes segments to be parts of one surface: a segment given
+    to an object that also holds ``detection.min_segment_features`` static-registration
+    inliers (``static_evidence`` ``(N,)``: not inliers of any object) spans the object and
+    the static scene (a box standing on a table, in one depth segment). Its static inliers,
+    and its features outside the object's extent (:func:`pixels_inside_hull`), stay static;
+    only its pixels inside that extent go into the object's mask; a plane that is such a
+    segment stays static (``objects.split_mixed_segments``)."""
+    config, frame, measurements = state.config, ctx.frame, ctx.measurements
+    segments = measurements.segments
+    point_segment = segments.segment_of_points(len(measurements.points))
+    owner_of_point = np.where(point_segment >= 0, assignment.segment_owner[np.maximum(point_segment, 0)], 0)
+    evidence = static_evidence & (owner_of_point > 0)
+    counts = np.bincount(point_segment[evidence], minlength=len(segments)) if evidence.any() else \
+        np.zeros(len(segments), dtype=np.int64)
+    mixed = np.flatnonzero((counts >= config.detection.min_segment_features) & (assignment.segment_owner > 0))
+    if not len(mixed):
+        return
+    in_mixed = np.isin(point_segment, mixed)
+    assignment.point_owner[evidence & in_mixed] = 0
+    plane_segment = segment_of_planes(segments, len(measurements.planes))
+    assignment.plane_owner[np.isin(plane_segment, mixed)] = 0
+    labels = segments.label_image
+    not_object = np.zeros(labels.shape, dtype=bool)
+    points = measurements.points
+    for segment in mixed:
+        object_id = int(assignment.segment_owner[segment])
+        outcome, hull = outcomes.get(object_id), hulls.get(object_id)
+        if outcome is None or hull is None:
+            continue
+        rows, cols = np.nonzero(labels == segment)
+        depth = frame.depth[rows, cols]
+        inside = (depth > 0) & pixels_inside_hull(rows, cols, depth, state.intrinsics, outcome.T_o_c, hull,
+                                                  config.noise, config.objects.extent_margin)
+        not_object[rows[~inside], cols[~inside]] = True
+        members = np.flatnonzero((point_segment == segment) & (assignment.point_owner == object_id))
+        if len(members):
+            member_inside = points.has_depth[members] & pixels_inside_hull(
+                points.pixels[members, 1], points.pixels[members, 0], np.nan_to_num(points.points[members, 2]),
+                state.intrinsics, outcome.T_o_c, hull, config.noise, config.objects.extent_margin)
+            assignment.point_owner[members[~member_inside]] = 0
+        logger.debug("frame %d: segment %d is mixed (%d static inliers); %d of %d pixels are object %d",
+                     measurements.frame_index, segment, counts[segment], int(inside.sum()), len(rows), object_id)
+    assignment.not_object_pixels = not_object

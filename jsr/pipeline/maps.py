@@ -3,6 +3,8 @@
 A map has its own frame: the static map's frame is the world (the first camera frame); an
 object map's frame is the camera frame of the keyframe that created it. Every keyframe stores
 ``T_map_cam`` and the measurements it contributed; landmarks live in the map frame.
+:class:`ObjectMap` is the map of one moving object, with what tracking it adds (its last
+poses, its trajectory in the world, its segments for segment-based registration).
 
 Landmarks are stored as growable structures of arrays (no per-landmark objects), so the
 matcher can take ``positions[ids]`` and ``descriptors[ids]`` in one slice.
@@ -302,3 +304,44 @@ class Map:
         logger.debug("%s: keyframe %d at frame %d (%d points, %d planes)", self.name, keyframe.keyframe_id,
                      frame_index, int(keep.sum()), len(plane_landmark_ids))
         return keyframe
+
+
+class ObjectMap(Map):
+    """The map of one moving object (landmarks in the object frame).
+
+    ``segment_landmarks[(keyframe_id, segment)]`` holds the point landmark ids of each segment
+    the object received in its keyframes: the units of segment-based registration, whose VLADs
+    live in the scene state's :class:`~jsr.pipeline.vlad.SegmentIndex`.
+    ``trajectory`` lists ``(frame_index, timestamp, T_w_o)`` of the frames it was tracked in;
+    ``trajectory_anchors[frame_index]`` the map's latest keyframe when that frame was tracked
+    and its ``T_map_cam`` then ``(4, 4)``: how far bundle adjustment moved the map since.
+    """
+
+    def __init__(self, object_id: int, created_at_frame: int):
+        super().__init__(f"object_{object_id}")
+        self.object_id = object_id
+        self.created_at_frame = created_at_frame
+        self.segment_landmarks: dict[tuple[int, int], np.ndarray] = {}
+        self.last_T_o_c: np.ndarray | None = None  # camera in the object frame, last tracked frame
+        self.last_T_w_o: np.ndarray | None = None  # object in the world, last frame tracked with the camera
+        # last_T_w_o came from registered matches, not from a surface alignment alone (a few
+        # degrees off): a pose the object may be kept at while it rests
+        self.last_pose_registered = True
+        self.lost = False  # not tracked in the previous frame: relocalise against the whole map
+        self.last_tracked_frame = created_at_frame  # the latest frame it was tracked in (camera tracked or not)
+        self.trajectory: list[tuple[int, float, np.ndarray]] = []
+        self.trajectory_anchors: dict[int, tuple[Keyframe, np.ndarray]] = {}
+        self.frames_tracked = 0
+
+    def record_pose(self, frame_index: int, timestamp: float, T_w_o: np.ndarray) -> None:
+        """Append ``T_w_o`` ``(4, 4)`` to the trajectory, anchored to the latest keyframe as it
+        is now (what bundle adjustment does to the map from now on applies to this pose)."""
+        self.trajectory.append((frame_index, timestamp, T_w_o))
+        if self.keyframes:
+            latest = self.keyframes[-1]
+            self.trajectory_anchors[frame_index] = (latest, latest.T_map_cam.copy())
+
+
+def map_folder(map_: Map) -> str:
+    """Folder of a map inside the results: ``static`` or ``objects/object_K``."""
+    return f"objects/{map_.name}" if isinstance(map_, ObjectMap) else map_.name

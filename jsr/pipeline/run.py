@@ -44,10 +44,11 @@ from jsr.config import Config, config_to_yaml
 from jsr.io.atomic import atomic_write_bytes, atomic_write_text
 from jsr.io.dataset import RGBDSequence
 from jsr.io.trajectory import write_tum_trajectory
+from jsr.export.meshes import write_dense_models
 from jsr.io.writers import write_csv, write_json, write_point_cloud_ply
-from jsr.pipeline.maps import Map
-from jsr.pipeline.objects import ObjectMap
-from jsr.pipeline.reconstruct import FrameReport, Reconstructor
+from jsr.pipeline.maps import Map, map_folder
+from jsr.pipeline.reconstruct import Reconstructor
+from jsr.pipeline.state import FrameReport
 
 logger = logging.getLogger(__name__)
 
@@ -59,11 +60,6 @@ STAGE_ORDER = ["sift", "depth_lookup", "planes", "segments", "frontend_total", "
 def _ordered_stages(reports: list[FrameReport]) -> list[str]:
     seen = {key for report in reports for key in report.timings_ms}
     return [s for s in STAGE_ORDER if s in seen] + sorted(seen - set(STAGE_ORDER))
-
-
-def map_folder(map_: Map) -> str:
-    """Folder of a map inside the results: ``static`` or ``objects/object_K``."""
-    return f"objects/{map_.name}" if isinstance(map_, ObjectMap) else map_.name
 
 
 def write_mask(path: Path, mask: np.ndarray) -> None:
@@ -247,8 +243,6 @@ def run_reconstruction(
         tracking_seconds = time.perf_counter() - started
         writer.write_tables(reconstructor)
         if dense_models:
-            from jsr.export.meshes import write_dense_models
-
             write_dense_models(reconstructor, sequence, config, out_dir)
         status = "complete"
     except KeyboardInterrupt as interrupt:

@@ -302,3 +302,42 @@ def _points_per_segment(
     order = np.argsort(owner, kind="stable")
     boundaries = np.searchsorted(owner[order], np.arange(segment_count + 1))
     return [order[boundaries[i] : boundaries[i + 1]] for i in range(segment_count)]
+
+
+def depth_adjacent_segments(label_image: np.ndarray, depth: np.ndarray, noise, segments_config,
+                            max_gap_pixels: int = 3, min_boundary_pixels: int = 10) -> np.ndarray:
+    """``(E, 2)`` pairs ``(a, b)``, ``a < b``, of segments that touch *in 3D*: along at least
+    ``min_boundary_pixels`` image neighbours (up to ``max_gap_pixels`` apart, horizontally or
+    vertically), their depths differ by less than the segmentation's discontinuity threshold.
+
+    Segments are cut at depth discontinuities, so two segments whose boundary is continuous in
+    depth meet at an edge (two faces of a box, a box standing on a table); a box in front of
+    a wall is image-adjacent to it but not depth-adjacent.
+    """
+    labels = np.asarray(label_image)
+    z = np.asarray(depth, dtype=np.float64)
+    pairs = []
+    for gap in range(1, max_gap_pixels + 2):
+        for a, b, za, zb in (
+            (labels[:, :-gap], labels[:, gap:], z[:, :-gap], z[:, gap:]),
+            (labels[:-gap, :], labels[gap:, :], z[:-gap, :], z[gap:, :]),
+        ):
+            keep = (a >= 0) & (b >= 0) & (a != b) & (za > 0) & (zb > 0)
+            if not keep.any():
+                continue
+            za_k, zb_k = za[keep], zb[keep]
+            mean_z = 0.5 * (za_k + zb_k)
+            sigma = noise.sigma_z_coefficient * mean_z**2
+            threshold = np.maximum(segments_config.min_discontinuity, segments_config.discontinuity_sigmas * sigma)
+            continuous = np.abs(za_k - zb_k) < threshold * gap
+            if continuous.any():
+                pairs.append(np.sort(np.stack([a[keep][continuous], b[keep][continuous]], axis=1), axis=1))
+    if not pairs:
+        return np.zeros((0, 2), dtype=np.int64)
+    stacked = np.concatenate(pairs).astype(np.int64)
+    # one integer key per pair (a * S + b): counting keys is much faster than unique rows,
+    # and sorted keys are the pairs in lexicographic order
+    count = int(stacked.max()) + 1
+    keys, counts = np.unique(stacked[:, 0] * count + stacked[:, 1], return_counts=True)
+    keys = keys[counts >= min_boundary_pixels]
+    return np.stack([keys // count, keys % count], axis=1)

@@ -596,7 +596,7 @@ def seen_through_share(model: SurfaceModel, T_model_camera: np.ndarray, view, in
                        sigmas: float, min_points: int = 20) -> float | None:
     """Share of the model's points that the current view saw through if the model sat at
     ``T_model_camera`` (model <- this camera): of the points facing the camera that project
-    where ``view`` (a :class:`~jsr.pipeline.objects.DepthView` of this frame, identity pose)
+    where ``view`` (a :class:`~jsr.pipeline.free_space.DepthView` of this frame, identity pose)
     measured depth, those in front of all the depth around them by more than ``max(margin,
     sigmas * sigma_Z)``. A right fit puts the model where the view sees a surface or behind one
     (occluded), whatever part of the object the region shows; a wrong one puts some of it in

@@ -1,0 +1,258 @@
+"""Map updates (Caccamo et al. 2017, Section 2.4): the first frame starts the static map (and an
+object map from a given mask), a moving region starts an object map, and every map whose
+registration succeeded takes a keyframe of its own measurements when its view is new.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from jsr.config import Config
+from jsr.pipeline.association import (MatchedFrame, inlier_landmarks, inlier_plane_landmarks, sample_colors)
+from jsr.pipeline.classify import segment_of_planes
+from jsr.pipeline.maps import Keyframe, ObjectMap
+from jsr.pipeline.measurements import FrameMeasurements, PointMeasurements
+from jsr.pipeline.object_registration import ObjectTrackingResult
+from jsr.pipeline.ownership import ownership_image
+from jsr.pipeline.registration import RegistrationResult
+from jsr.pipeline.state import MAX_OBJECT_ID, FrameAssignment, FrameContext, SceneState
+from jsr.pipeline.static_hygiene import holding_back, without_suspects
+from jsr.pipeline.vlad import VladVocabulary
+
+logger = logging.getLogger(__name__)
+
+
+def initialise(state: SceneState, ctx: FrameContext, init_object_mask: np.ndarray | None) -> None:
+    """The first frame with enough 3D points defines the world frame and the static map
+    (and object map 1 from the segments inside ``init_object_mask`` ``(H, W)`` bool, when
+    given): sets ``ctx.assignment`` and the report's pose."""
+    frame, measurements, report = ctx.frame, ctx.measurements, ctx.report
+    points, planes = measurements.points, measurements.planes
+    assignment = ctx.assignment = FrameAssignment.all_static(measurements)
+    if int(points.has_depth.sum()) < state.config.ransac.min_matches:
+        report.reason = "too few 3D points to start the map"
+        return
+    pose = np.eye(4)
+    if init_object_mask is not None:
+        object_segments = segments_in_mask(measurements, init_object_mask)
+        if object_segments:
+            object_map = start_object(state, ctx, object_segments, pose)
+            if object_map is not None:
+                report.objects_created.append(object_map.object_id)
+                report.objects_tracked.append(object_map.object_id)
+            else:
+                logger.warning("the initial object mask covers too few 3D features on frame %d (an object map "
+                               "needs %d); no object map started: give a larger mask or box", frame.index,
+                               min(state.config.detection.min_object_points, state.config.ransac.min_matches))
+        else:
+            logger.warning("the initial object mask covers no segment of frame %d; no object map started",
+                           frame.index)
+    static_points = np.flatnonzero(assignment.point_owner == 0)
+    static_planes = np.flatnonzero(assignment.plane_owner == 0)
+    state.static_map.add_keyframe(
+        frame.index, frame.timestamp, pose, points, static_points, np.full(len(static_points), -1),
+        sample_colors(frame, points.pixels[static_points]), planes, static_planes,
+        np.full(len(static_planes), -1),
+    )
+    report.tracked, report.T_w_c, report.new_keyframe = True, pose, True
+    state.camera.last_pose = pose
+    state.camera.previous = (measurements, pose)
+    remember_depth(state, ctx)
+
+
+def segments_in_mask(measurements: FrameMeasurements, mask: np.ndarray) -> list[int]:
+    """Segments with at least half of their pixels inside ``mask`` ``(H, W)`` bool."""
+    labels = measurements.segments.label_image
+    if mask.shape != labels.shape:
+        raise ValueError(f"initial object mask is {mask.shape[1]}x{mask.shape[0]} but frames are "
+                         f"{labels.shape[1]}x{labels.shape[0]}")
+    inside = np.bincount(labels[mask & (labels >= 0)], minlength=len(measurements.segments))
+    total = np.maximum(np.asarray(measurements.segments.pixel_counts), 1)
+    return np.flatnonzero(inside >= 0.5 * total).tolist()
+
+
+def start_object(state: SceneState, ctx: FrameContext, segment_ids: list[int], T_w_c: np.ndarray) -> ObjectMap | None:
+    """A new object map from the segments ``segment_ids`` of the frame (their features no
+    object has), its frame this camera frame (pose ``T_w_c``); None when they hold too few 3D
+    points or no id is left. ``ctx.assignment`` gives them to it."""
+    frame, measurements, assignment = ctx.frame, ctx.measurements, ctx.assignment
+    points, planes = measurements.points, measurements.planes
+    points_in, planes_in = features_in_segments(measurements, segment_ids)
+    point_ids = np.flatnonzero(points_in & (assignment.point_owner == 0) & points.has_depth)
+    plane_ids = np.flatnonzero(planes_in & (assignment.plane_owner == 0))
+    if len(point_ids) < min(state.config.detection.min_object_points, state.config.ransac.min_matches):
+        return None
+    if state.next_object_id > MAX_OBJECT_ID:
+        logger.warning("frame %d: %d object maps already; no more are started (masks hold ids up to %d)",
+                       frame.index, MAX_OBJECT_ID, MAX_OBJECT_ID)
+        return None
+    object_id = state.next_object_id  # ids are never reused, also after merges
+    state.next_object_id += 1
+    object_map = ObjectMap(object_id, frame.index)
+    keyframe = object_map.add_keyframe(
+        frame.index, frame.timestamp, np.eye(4), points, point_ids, np.full(len(point_ids), -1),
+        sample_colors(frame, points.pixels[point_ids]), planes, plane_ids, np.full(len(plane_ids), -1))
+    assignment.point_owner[point_ids] = object_id
+    assignment.plane_owner[plane_ids] = object_id
+    assignment.segment_owner[segment_ids] = object_id
+    state.object_maps.append(object_map)
+    ensure_vocabulary(state, measurements)
+    index_segments(state, object_map, keyframe, measurements, segment_ids)
+    object_map.last_T_o_c = np.eye(4)
+    object_map.last_T_w_o = np.array(T_w_c, dtype=float)
+    object_map.record_pose(frame.index, frame.timestamp, object_map.last_T_w_o)
+    object_map.frames_tracked = 1
+    logger.info("frame %d: object %d detected (%d segments, %d points, %d planes)", frame.index, object_id,
+                len(segment_ids), len(point_ids), len(plane_ids))
+    return object_map
+
+
+def index_segments(state: SceneState, object_map: ObjectMap, keyframe: Keyframe, measurements: FrameMeasurements,
+                   segment_ids) -> None:
+    """Store the VLAD and landmark ids of every segment an object keyframe received."""
+    if state.vocabulary is None:
+        return
+    landmark_of = np.full(len(measurements.points), -1, dtype=np.int64)
+    landmark_of[keyframe.point_measurements] = keyframe.point_landmarks
+    for segment in segment_ids:
+        indices = np.asarray(measurements.segments.point_indices[segment], dtype=np.int64)
+        landmarks = landmark_of[indices]
+        landmarks = np.unique(landmarks[landmarks >= 0])
+        if len(landmarks) < state.config.vlad.min_segment_points:
+            continue
+        key = (keyframe.keyframe_id, int(segment))
+        object_map.segment_landmarks[key] = landmarks
+        state.segment_index.add(object_map.object_id, key,
+                               state.vocabulary.encode(object_map.points.descriptors[landmarks]))
+
+
+def ensure_vocabulary(state: SceneState, measurements: FrameMeasurements) -> None:
+    """Train the VLAD vocabulary once, on the static map's descriptors (and this frame's)."""
+    if state.vocabulary is not None:
+        return
+    config = state.config.vlad
+    descriptors = np.concatenate([state.static_map.points.descriptors, measurements.points.descriptors])
+    rng = np.random.default_rng(state.config.seed)  # its own stream: RANSAC draws stay unchanged
+    if len(descriptors) > config.training_descriptors:
+        descriptors = descriptors[np.sort(rng.choice(len(descriptors), config.training_descriptors, replace=False))]
+    state.vocabulary = VladVocabulary.train(descriptors, config.vocabulary_size, rng, config.kmeans_iterations,
+                                           config.normalization)
+    logger.info("VLAD vocabulary of %d words trained on %d descriptors", state.vocabulary.size, len(descriptors))
+
+
+def update_static(state: SceneState, ctx: FrameContext) -> None:
+    """Add a keyframe to the static map (its own measurements only) when the pose is new."""
+    frame, measurements, report, static, assignment = ctx.frame, ctx.measurements, ctx.report, ctx.static, ctx.assignment
+    pose = report.T_w_c
+    if not (static.bridged or state.static_map.needs_keyframe(pose, state.config.keyframes)):
+        return
+    points, planes = measurements.points, measurements.planes
+    static_points = np.flatnonzero(assignment.point_owner == 0)
+    static_planes = np.flatnonzero(assignment.plane_owner == 0)
+    if holding_back(state.config, ctx) and not static.bridged:
+        static_points, static_planes = without_suspects(ctx, static_points, static_planes)
+    if static.bridged:  # matched to the previous frame, not to the map: all measurements are new
+        landmark_of = np.full(len(points), -1, dtype=np.int64)
+        plane_landmark_of = np.full(len(planes), -1, dtype=np.int64)
+    else:
+        landmark_of = inlier_landmarks(static.matched, static.result, len(points))
+        plane_landmark_of = inlier_plane_landmarks(static.matched, static.result, len(planes))
+    state.static_map.add_keyframe(
+        frame.index, frame.timestamp, pose, points, static_points, landmark_of[static_points],
+        sample_colors(frame, points.pixels[static_points]), planes, static_planes,
+        plane_landmark_of[static_planes],
+    )
+    report.new_keyframe = True
+    remember_depth(state, ctx)
+    state.bundle.maybe_start(state.static_map)
+
+
+def remember_depth(state: SceneState, ctx: FrameContext) -> None:
+    """Keep the static pixels' depth of the new static keyframe (subsampled) for free-space tests."""
+    if not (state.config.objects.enabled and state.config.objects.free_space_detection):
+        return
+    unknown = ownership_image(ctx.measurements, ctx.assignment) > 0  # where objects were, nothing is known ...
+    if holding_back(state.config, ctx):  # ... nor where something may have moved to (see without_suspects)
+        unknown |= np.isin(ctx.measurements.segments.label_image, ctx.suspects)
+    state.free_space.remember(state.static_map.keyframes[-1], ctx.frame.depth, unknown)
+
+
+def update_object(state: SceneState, ctx: FrameContext, outcome: ObjectTrackingResult) -> bool:
+    """Record the object's pose and add a keyframe when the object-relative view is new
+    (then True)."""
+    frame, measurements, report, assignment = ctx.frame, ctx.measurements, ctx.report, ctx.assignment
+    object_map = outcome.object_map
+    if object_map not in state.object_maps:
+        return False  # merged into another map earlier in this frame
+    best = outcome.best
+    if best is None:
+        return False
+    matched, result = best
+    T_o_c = result.transformation
+    object_map.lost = False
+    object_map.last_T_o_c = T_o_c
+    object_map.last_tracked_frame = frame.index
+    object_map.frames_tracked += 1
+    report.objects_tracked.append(object_map.object_id)
+    if report.tracked:
+        T_w_o = report.T_w_c @ np.linalg.inv(T_o_c)
+        object_map.last_T_w_o = T_w_o
+        object_map.last_pose_registered = not outcome.pose_from_surface
+        object_map.record_pose(frame.index, frame.timestamp, T_w_o)
+    points, planes = measurements.points, measurements.planes
+    own_points = np.flatnonzero(assignment.point_owner == object_map.object_id)
+    landmark_of = inlier_landmarks(matched, result, len(points))
+    if not (object_map.needs_keyframe(T_o_c, state.config.keyframes)
+            or map_would_grow(state.config, object_map, points, own_points, landmark_of)):
+        return False
+    own_planes = np.flatnonzero(assignment.plane_owner == object_map.object_id)
+    plane_landmark_of = inlier_plane_landmarks(matched, result, len(planes))
+    keyframe = object_map.add_keyframe(
+        frame.index, frame.timestamp, T_o_c, points, own_points, landmark_of[own_points],
+        sample_colors(frame, points.pixels[own_points]), planes, own_planes, plane_landmark_of[own_planes])
+    own_segments = np.flatnonzero(assignment.segment_owner == object_map.object_id)
+    index_segments(state, object_map, keyframe, measurements, own_segments)
+    state.bundle.maybe_start(object_map)
+    return True
+
+
+def map_would_grow(config: Config, object_map: ObjectMap, points: PointMeasurements, own_points: np.ndarray,
+                   landmark_of: np.ndarray) -> bool:
+    """Whether this frame's 3D measurements given to the object and matching none of its
+    landmarks are at least ``objects.grow_keyframe_ratio`` times its active landmarks (and
+    at least ``detection.min_object_points``): a map starts from the few features of the
+    segments that gave it away, and should take the rest of the object in as soon as it
+    is seen, not only once the object-relative view has changed (measured on
+    kitchen_box120: a map started from 26 points was tracked by 9-15 inliers for 12 frames,
+    until a view change gave it a keyframe of 188 points)."""
+    ratio = config.objects.grow_keyframe_ratio
+    if ratio <= 0 or not len(own_points):
+        return False
+    new = int(np.count_nonzero(points.has_depth[own_points] & (landmark_of[own_points] < 0)))
+    return new >= max(config.detection.min_object_points, ratio * object_map.points.active_count)
+
+
+def claim_region(measurements: FrameMeasurements, group: list[int], outcome: ObjectTrackingResult,
+                 matched: MatchedFrame, result: RegistrationResult, assignment: FrameAssignment) -> None:
+    """The segments ``group`` and their unowned features go to ``outcome``'s object, which
+    is tracked in this frame by ``result``."""
+    object_id = outcome.object_map.object_id
+    outcome.frame_matched, outcome.frame_result = matched, result
+    assignment.segment_owner[group] = object_id
+    points_in, planes_in = features_in_segments(measurements, group)
+    assignment.point_owner[points_in & (assignment.point_owner == 0)] = object_id
+    assignment.plane_owner[planes_in & (assignment.plane_owner == 0)] = object_id
+
+
+def features_in_segments(measurements: FrameMeasurements, segment_ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """``(N,)`` bool over the frame's points and ``(P,)`` bool over its planes: those lying in
+    one of the segments ``segment_ids``."""
+    segments = measurements.segments
+    members = np.zeros(len(segments), dtype=bool)
+    members[segment_ids] = True
+    point_segment = segments.segment_of_points(len(measurements.points))
+    plane_segment = segment_of_planes(segments, len(measurements.planes))
+    return ((point_segment >= 0) & members[np.maximum(point_segment, 0)],
+            (plane_segment >= 0) & members[np.maximum(plane_segment, 0)])
