@@ -17,8 +17,9 @@ import pytest
 from jsr.config import Config
 from jsr.geometry import KINECT_SIGMA_Z_COEFFICIENT, invert_transform, look_at, make_transform, rotation_about_axis
 from jsr.io.camera import CameraIntrinsics
-from jsr.pipeline import planes as planes_module
-from jsr.pipeline.planes import extract_planes, fit_planes_from_moments
+from jsr.pipeline import plane_fitting
+from jsr.pipeline.plane_fitting import fit_planes_from_moments, fit_scalar
+from jsr.pipeline.planes import extract_planes
 
 ANGLE_TOLERANCE_DEGREES = 2.0
 OFFSET_TOLERANCE = 0.01
@@ -313,7 +314,7 @@ def test_fit_from_moments_matches_eigh():
         rows.append([80, x.sum(), y.sum(), z.sum(), x @ x, x @ y, x @ z, y @ y, y @ z, z @ z, (z**4).sum()])
     moments = np.array(rows)
     normals, offsets, centroids, mse = fit_planes_from_moments(moments)
-    mean, covariance = planes_module._covariances(moments)
+    mean, covariance = plane_fitting._covariances(moments)
     eigenvalues, eigenvectors = np.linalg.eigh(covariance)
     reference = eigenvectors[:, :, 0] * np.where(np.einsum("ij,ij->i", eigenvectors[:, :, 0], mean) > 0, -1, 1)[:, None]
     np.testing.assert_allclose(normals, reference, atol=1e-9)
@@ -321,7 +322,7 @@ def test_fit_from_moments_matches_eigh():
     np.testing.assert_allclose(centroids, mean)
     np.testing.assert_allclose(offsets, -np.einsum("ij,ij->i", normals, mean))
     for row, normal, error in zip(rows[:20], normals, mse):
-        fitted = planes_module._fit_scalar(list(map(float, row)), True)
+        fitted = fit_scalar(list(map(float, row)), True)
         assert fitted[0] == pytest.approx(error, rel=1e-6, abs=1e-15)
         np.testing.assert_allclose(fitted[3:], normal, atol=1e-9)
 
