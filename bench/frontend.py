@@ -62,10 +62,11 @@ def synthetic_sequence(directory: Path, frames: int):
     """A sequence from ``jsr.synth`` (640x480 when its options allow), or None."""
     if importlib.util.find_spec("jsr.synth") is None:
         return None, "jsr.synth not available"
-    from jsr import synth
+    from jsr.synth.options import SynthOptions
+    from jsr.synth.write import generate_sequence
 
     try:
-        options = synth.SynthOptions()
+        options = SynthOptions()
         changes = {}
         for name, value in (("width", 640), ("height", 480), ("frames", frames), ("num_frames", frames)):
             if hasattr(options, name):
@@ -74,7 +75,7 @@ def synthetic_sequence(directory: Path, frames: int):
             import dataclasses
 
             options = dataclasses.replace(options, **changes)
-        synth.generate_sequence(directory, options, overwrite=True)
+        generate_sequence(directory, options, overwrite=True)
         return open_sequence(directory), f"synthetic ({options.__class__.__name__} {changes})"
     except Exception as error:  # the generator is another module's work in progress
         return None, f"jsr.synth failed: {type(error).__name__}: {error}"

@@ -38,7 +38,7 @@ frames used; "moves" = its true T_w_o changes by > 1 mm or > 0.5 deg from the pr
    summed over frames); a map overlapping no object is spurious. Target: exactly one map per
    moving object and no other.
 3. pose error: for each true moving object, the trajectory T_w_o of each map matched to it
-   against the true T_w_o on common frames, as ``jsr.evaluate.object_pose_error`` does: poses
+   against the true T_w_o on common frames, as ``jsr.evaluate.objects.object_pose_error`` does: poses
    compared in the camera frame (C = inv(T_w_c) T_w_o, which needs no world alignment) after removing the constant offset between the estimated and true object frames
    (one offset per map), the translation error taken at the true object's centre; translation RMSE (cm) and rotation RMSE (deg) pooled over the tracked
    frames of all its maps (per map in the JSON). The poses scored are those the run writes:
@@ -94,12 +94,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from jsr.config import load_config  # noqa: E402
-from jsr.evaluate import (  # noqa: E402
-    VISIBLE_PIXEL_THRESHOLD,
-    absolute_trajectory_error,
-    associate_poses,
-    object_pose_error,
-)
+from jsr.evaluate.objects import object_pose_error  # noqa: E402
+from jsr.evaluate.run import VISIBLE_PIXEL_THRESHOLD  # noqa: E402
+from jsr.evaluate.trajectory import absolute_trajectory_error, associate_poses  # noqa: E402
 from jsr.geometry import invert_transform, rotation_angle  # noqa: E402
 from jsr.io.dataset import associate_timestamps, open_sequence  # noqa: E402
 from jsr.io.trajectory import read_tum_trajectory  # noqa: E402
@@ -146,7 +143,8 @@ def synthetic_sequence(root: Path, name: str, frames: int, seed: int, size: tupl
     ``size`` ``(width, height)`` pixels."""
     import yaml
 
-    from jsr.synth import SynthOptions, generate_sequence
+    from jsr.synth.options import SynthOptions
+    from jsr.synth.write import generate_sequence
 
     objects, motion, simultaneous = SYNTHETIC[name] if name in SYNTHETIC else (0, "static", False)
     options = SynthOptions(frames=frames, objects=objects, motion=motion, simultaneous=simultaneous,

@@ -27,7 +27,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from jsr.config import load_config  # noqa: E402
-from jsr.evaluate import absolute_trajectory_error, associate_poses, evaluate_run  # noqa: E402
+from jsr.evaluate.run import evaluate_run  # noqa: E402
+from jsr.evaluate.trajectory import absolute_trajectory_error, associate_poses  # noqa: E402
 from jsr.io.dataset import open_sequence  # noqa: E402
 from jsr.pipeline.run import run_reconstruction  # noqa: E402
 
@@ -64,7 +65,8 @@ def open3d_odometry(sequence) -> tuple[np.ndarray, np.ndarray, float]:
 
 
 def synthetic_static(root: Path, frames: int) -> Path:
-    from jsr.synth import SynthOptions, generate_sequence
+    from jsr.synth.options import SynthOptions
+    from jsr.synth.write import generate_sequence
 
     out = root / "synthetic_static"
     generate_sequence(out, SynthOptions(frames=frames, objects=0, motion="static", seed=1))

@@ -335,7 +335,8 @@ def synth(
     json_summary: bool = typer.Option(False, "--json", help="Print a one-line JSON summary on stdout."),
 ) -> None:
     """Write a synthetic RGB-D sequence with exact ground truth (camera, objects, labels)."""
-    from jsr.synth import SynthOptions, check_output_folder, generate_sequence, validate_options
+    from jsr.synth.options import SynthOptions, validate_options
+    from jsr.synth.write import check_output_folder, generate_sequence
 
     _configure_logging(0, quiet)
     options = SynthOptions(
@@ -414,7 +415,7 @@ def evaluate(
     json_summary: bool = typer.Option(False, "--json", help="Print the metrics as one line of JSON on stdout."),
 ) -> None:
     """Compare a results folder with ground truth; writes RESULTS/metrics.json."""
-    from jsr.evaluate import evaluate_run, write_metrics
+    from jsr.evaluate.run import evaluate_run, write_metrics
 
     _configure_logging(0, quiet)
     metrics = evaluate_run(results, sequence)

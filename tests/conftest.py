@@ -43,14 +43,15 @@ def shared_data() -> Path:
 
 
 SYNTH_SEQUENCE_OPTIONS = dict(frames=16, objects=1, motion="jump", width=160, height=120, seed=0)
-"""Options of the ``synth_sequence`` fixture (for :class:`jsr.synth.SynthOptions`)."""
+"""Options of the ``synth_sequence`` fixture (for :class:`jsr.synth.options.SynthOptions`)."""
 
 
 @pytest.fixture(scope="session")
 def synth_sequence(tmp_path_factory) -> Path:
     """A small synthetic TUM-layout sequence (160x120, 16 frames, one jumping object, seed 0),
-    written once per test session by :func:`jsr.synth.generate_sequence`. Do not modify it."""
-    from jsr.synth import SynthOptions, generate_sequence
+    written once per test session by :func:`jsr.synth.write.generate_sequence`. Do not modify it."""
+    from jsr.synth.options import SynthOptions
+    from jsr.synth.write import generate_sequence
 
     root = tmp_path_factory.mktemp("synth") / "sequence"
     generate_sequence(root, SynthOptions(**SYNTH_SEQUENCE_OPTIONS))

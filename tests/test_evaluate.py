@@ -13,17 +13,10 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from jsr.errors import InputError
-from jsr.evaluate import (
-    ObjectPoseError,
-    absolute_trajectory_error,
-    associate_poses,
-    evaluate_run,
-    mask_precision_recall,
-    match_objects,
-    object_pose_error,
-    relative_pose_error,
-    write_metrics,
-)
+from jsr.evaluate.masks import mask_precision_recall
+from jsr.evaluate.objects import ObjectPoseError, match_objects, object_pose_error
+from jsr.evaluate.run import evaluate_run, write_metrics
+from jsr.evaluate.trajectory import absolute_trajectory_error, associate_poses, relative_pose_error
 from jsr.geometry import invert_transform, make_transform, rotation_about_axis
 from jsr.io.trajectory import read_tum_trajectory, write_tum_trajectory
 

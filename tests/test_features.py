@@ -60,10 +60,13 @@ def reference_lookup(depth: np.ndarray, pixel: np.ndarray, radius: int, spread_s
 @pytest.fixture(scope="module")
 def synth_pair():
     """One synthetic frame rendered noise-free and with Kinect noise (same colour image)."""
-    synth = pytest.importorskip("jsr.synth")
-    options = synth.SynthOptions(frames=10, objects=2, width=640, height=480, seed=2)
-    plan = synth.build_scene_plan(options)
-    renderer = synth.SynthRenderer(plan)
+    from jsr.synth.options import SynthOptions
+    from jsr.synth.render import SynthRenderer
+    from jsr.synth.scene import build_scene_plan
+
+    options = SynthOptions(frames=10, objects=2, width=640, height=480, seed=2)
+    plan = build_scene_plan(options)
+    renderer = SynthRenderer(plan)
     clean = renderer.render(4, depth_noise=False, dropout=0.0)
     noisy = renderer.render(4, depth_noise=True, dropout=0.0)
     return plan.intrinsics, clean, noisy

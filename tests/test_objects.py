@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from jsr.config import load_config
-from jsr.evaluate import object_pose_error
+from jsr.evaluate.objects import object_pose_error
 from jsr.geometry import rotation_angle
 from jsr.io.dataset import open_sequence
 from jsr.pipeline.classify import complete_segments
@@ -25,7 +25,8 @@ from jsr.pipeline.segments import depth_adjacent_segments
 from jsr.pipeline.shape_reidentification import landmarks_agree_elsewhere
 from jsr.pipeline.state import DetectionMemory, FrameContext
 from jsr.pipeline.static_hygiene import retire_vacated_landmarks, without_suspects
-from jsr.synth import SynthOptions, generate_sequence
+from jsr.synth.options import SynthOptions
+from jsr.synth.write import generate_sequence
 
 WIDTH, HEIGHT = 320, 240
 
@@ -1075,7 +1076,7 @@ def test_landmarks_in_space_seen_empty_are_phantoms():
     """FreeSpaceViews.in_free_space: a static landmark the latest static keyframe saw through
     (its wall 3 m away, the landmark at 2 m) is a phantom, whatever lies on or behind the
     wall, or outside the view, is not; nothing is with free-space tests off."""
-    from jsr.synth import synth_intrinsics
+    from jsr.synth.scene import synth_intrinsics
 
     intrinsics = synth_intrinsics(160, 120)
     keyframes = [SimpleNamespace(T_map_cam=np.eye(4))]  # the view's keyframe
@@ -1148,7 +1149,7 @@ def test_face_with_few_3d_features_grows_into_its_object_when_it_moved_in(violat
     """A face next to a tracked object seen at a grazing angle (10 features, 2 with depth)
     joins the object when at least objects.grow_violation_share of its sampled pixels lie in space
     the static keyframes saw empty; a segment like it where they saw a surface does not."""
-    from jsr.synth import synth_intrinsics
+    from jsr.synth.scene import synth_intrinsics
 
     reconstructor = Reconstructor(load_config(None), synth_intrinsics(640, 480))
     segments = _FrameSegments([np.arange(0, 20), np.arange(20, 30), np.arange(30, 40)])
@@ -1177,7 +1178,7 @@ def test_segment_inside_the_extent_where_the_static_keyframes_saw_a_surface_stay
     over the scene, which then grew into one static segment after another (70% of the object's
     mask static by the end). Earlier keyframes saw the object's own faces as static; a segment
     they saw less than half of may be a face of the object that moved there."""
-    from jsr.synth import synth_intrinsics
+    from jsr.synth.scene import synth_intrinsics
 
     config = load_config(None, [f"objects.extent_unseen_only={str(unseen_only).lower()}"])
     reconstructor = Reconstructor(config, synth_intrinsics(640, 480))
@@ -1202,7 +1203,7 @@ def test_segment_inside_the_extent_where_the_static_keyframes_saw_a_surface_stay
 def test_free_space_since_a_frame_counts_only_later_keyframes():
     """FrameContext.free_space_since: the static keyframes of frames after the given one;
     when all the kept ones are, the frame's own (cached) counts, not computed again."""
-    from jsr.synth import synth_intrinsics
+    from jsr.synth.scene import synth_intrinsics
 
     reconstructor = Reconstructor(load_config(None), synth_intrinsics(640, 480))
     state = reconstructor.state
@@ -1275,7 +1276,7 @@ def test_segments_where_a_just_lost_object_was_are_its_candidates():
     """moving_regions.where_just_lost (detection.where_lost): of the candidate segments, those
     at least half inside the previous frame's pixels of an object that this frame lost; not
     those of an object still tracked, nor of one that was lost already a frame ago."""
-    from jsr.synth import synth_intrinsics
+    from jsr.synth.scene import synth_intrinsics
 
     reconstructor = Reconstructor(load_config(None), synth_intrinsics(16, 8))
     previous = np.zeros((8, 16), dtype=np.uint8)
@@ -1467,7 +1468,7 @@ def test_surface_alignment_is_drawn_again_while_nothing_is_kept(monkeypatch):
     miss the right alignment once), and no more once one is kept; the region's surface is
     sampled once for all attempts."""
     from jsr.pipeline import shape_reidentification
-    from jsr.synth import synth_intrinsics
+    from jsr.synth.scene import synth_intrinsics
 
     labels = np.full((240, 320), -1, dtype=np.int32)
     labels[100:160, 120:200] = 3  # the moving region: segment 3, a flat patch 1 m away

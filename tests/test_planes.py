@@ -371,10 +371,13 @@ def _synth_face_truth(plan, frame_index: int, depth_clean: np.ndarray):
 
 @pytest.fixture(scope="module")
 def synth_frames():
-    synth = pytest.importorskip("jsr.synth")
-    options = synth.SynthOptions(frames=30, objects=2, width=640, height=480, seed=5)
-    plan = synth.build_scene_plan(options)
-    renderer = synth.SynthRenderer(plan)
+    from jsr.synth.options import SynthOptions
+    from jsr.synth.render import SynthRenderer
+    from jsr.synth.scene import build_scene_plan
+
+    options = SynthOptions(frames=30, objects=2, width=640, height=480, seed=5)
+    plan = build_scene_plan(options)
+    renderer = SynthRenderer(plan)
     frames = {index: renderer.render(index) for index in (0, 14, 29)}
     return plan, frames
 

@@ -47,10 +47,13 @@ def purity_and_coverage(segment_labels: np.ndarray, truth: np.ndarray, min_objec
 
 @pytest.fixture(scope="module")
 def synth_measurements():
-    synth = pytest.importorskip("jsr.synth")
-    options = synth.SynthOptions(frames=30, objects=3, width=640, height=480, seed=1)
-    plan = synth.build_scene_plan(options)
-    renderer = synth.SynthRenderer(plan)
+    from jsr.synth.options import SynthOptions
+    from jsr.synth.render import SynthRenderer
+    from jsr.synth.scene import build_scene_plan
+
+    options = SynthOptions(frames=30, objects=3, width=640, height=480, seed=1)
+    plan = build_scene_plan(options)
+    renderer = SynthRenderer(plan)
     config = Config()
     results = []
     with FrontEnd(config, plan.intrinsics, parallel=False) as frontend:

@@ -11,14 +11,10 @@ from jsr.errors import InputError, OutputError
 from jsr.geometry import KINECT_SIGMA_Z_COEFFICIENT, backproject_depth, invert_transform, transform_points
 from jsr.io.dataset import open_sequence
 from jsr.io.trajectory import read_tum_trajectory
-from jsr.synth import (
-    TABLE_SIZE,
-    TABLE_TOP,
-    SynthOptions,
-    SynthRenderer,
-    build_scene_plan,
-    generate_sequence,
-)
+from jsr.synth.options import SynthOptions
+from jsr.synth.render import SynthRenderer
+from jsr.synth.scene import TABLE_SIZE, TABLE_TOP, build_scene_plan
+from jsr.synth.write import generate_sequence
 
 
 def _options_of(root):

@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 
 from jsr.config import load_config
-from jsr.evaluate import absolute_trajectory_error, associate_poses
+from jsr.evaluate.trajectory import absolute_trajectory_error, associate_poses
 from jsr.io.dataset import open_sequence
 from jsr.pipeline.reconstruct import Reconstructor
-from jsr.synth import SynthOptions, generate_sequence
+from jsr.synth.options import SynthOptions
+from jsr.synth.write import generate_sequence
 
 
 @pytest.fixture(scope="module")

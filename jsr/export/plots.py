@@ -97,7 +97,7 @@ def plot_trajectory(camera_tum: Path, out_png: Path, groundtruth_tum: Path | Non
     figure, axis = plt.subplots(figsize=(6, 5))
     axis.plot(poses[:, 0, 3], poses[:, 2, 3], color="tab:red", label="estimate")
     if groundtruth_tum is not None:
-        from jsr.evaluate import associate_poses, absolute_trajectory_error
+        from jsr.evaluate.trajectory import associate_poses, absolute_trajectory_error
 
         est_t, est_poses = read_tum_trajectory(Path(camera_tum))
         gt_t, gt_poses = read_tum_trajectory(Path(groundtruth_tum))
