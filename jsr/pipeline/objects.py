@@ -31,10 +31,11 @@ from jsr.pipeline.association import (
     match_frame_guided,
     match_frame_to_map,
 )
+from jsr.pipeline.correspondences import Correspondences, RegistrationResult
 from jsr.pipeline.maps import Keyframe, Map
 from jsr.pipeline.matching import match_descriptors
 from jsr.pipeline.measurements import FrameMeasurements
-from jsr.pipeline.registration import Correspondences, RegistrationResult, register
+from jsr.pipeline.registration import register
 from jsr.pipeline.vlad import SegmentIndex, VladVocabulary
 
 logger = logging.getLogger(__name__)

@@ -66,8 +66,8 @@ from jsr.pipeline.objects import (
     unsupported_segments,
     UNSUPPORTED_STATIC_SHARE,
 )
-from jsr.pipeline.registration import (RegistrationResult, depth_thresholds, evaluate_pose, point3d_thresholds,
-                                      pose_cost, register, surface_pose_result)
+from jsr.pipeline.correspondences import RegistrationResult, depth_thresholds, point3d_thresholds
+from jsr.pipeline.registration import evaluate_pose, pose_cost, register, surface_pose_result
 from jsr.pipeline.surfaces import (
     Alignment,
     SurfaceModel,
