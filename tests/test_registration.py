@@ -9,8 +9,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from jsr.config import NoiseConfig, RansacConfig
-from jsr.pipeline import registration
-from jsr.pipeline.registration import Correspondences, register
+from jsr.pipeline import correspondences, pose_refinement, registration
+from jsr.pipeline.correspondences import Correspondences
+from jsr.pipeline.pose_scoring import RegistrationProblem
+from jsr.pipeline.registration import register
 
 FX = FY = 525.0
 CX, CY = 319.5, 239.5
@@ -265,9 +267,9 @@ def test_inlier_functions_agree_with_result() -> None:
     corr, _, _ = _scene(11, n3d=120, n2d=50, n_planes=5, plane_outliers=1)
     result = register(corr, RANSAC, NOISE, np.random.default_rng(0))
     pose = result.transformation
-    np.testing.assert_array_equal(registration.point_inliers(pose, corr, NOISE), result.inliers_point3d)
-    np.testing.assert_array_equal(registration.point2d_inliers(pose, corr, NOISE), result.inliers_point2d)
-    np.testing.assert_array_equal(registration.plane_inliers(pose, corr, RANSAC), result.inliers_plane)
+    np.testing.assert_array_equal(correspondences.point_inliers(pose, corr, NOISE), result.inliers_point3d)
+    np.testing.assert_array_equal(correspondences.point2d_inliers(pose, corr, NOISE), result.inliers_point2d)
+    np.testing.assert_array_equal(correspondences.plane_inliers(pose, corr, RANSAC), result.inliers_plane)
     evaluated = registration.evaluate_pose(pose, corr, RANSAC, NOISE)
     assert evaluated.num_inliers == result.num_inliers
     assert evaluated.success == result.success
@@ -277,7 +279,7 @@ def test_depth_dependent_threshold() -> None:
     """A 3 cm error is an inlier at 4 m (3 sigma_Z = 6.8 cm) but not at 1 m (1 cm floor)."""
     frame = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 4.0]])
     corr = Correspondences(frame_points=frame, map_points=frame + [0.03, 0.0, 0.0])
-    np.testing.assert_array_equal(registration.point_inliers(np.eye(4), corr, NOISE), [False, True])
+    np.testing.assert_array_equal(correspondences.point_inliers(np.eye(4), corr, NOISE), [False, True])
 
 
 def test_surface_pose_result_links_landmarks_only_when_enough_agree() -> None:
@@ -306,7 +308,7 @@ def test_2d_landmark_behind_the_camera_is_an_outlier() -> None:
     bearing = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
     landmarks = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, -2.0]])
     corr = Correspondences(frame_bearings=bearing, map_points_2d=landmarks)
-    np.testing.assert_array_equal(registration.point2d_inliers(np.eye(4), corr, NOISE), [True, False])
+    np.testing.assert_array_equal(correspondences.point2d_inliers(np.eye(4), corr, NOISE), [True, False])
 
 
 def test_ids_are_carried_through_subset() -> None:
@@ -375,7 +377,7 @@ def _image_space_setup(seed: int):
     start pose 2 cm / 1 degree off the truth, and the motion prior at the truth."""
     corr, truth, _ = _scene(seed, n3d=150, n2d=50, n_planes=4, outlier_ratio=0.2)
     corr = dataclasses.replace(corr, focal_length=FX)
-    problem = registration._Problem(corr, RANSAC, NOISE)
+    problem = RegistrationProblem(corr, RANSAC, NOISE)
     _, _, masks = problem.score_one(truth)
     rng = np.random.default_rng(seed)
     start = truth.copy()
@@ -388,7 +390,7 @@ def _image_space_setup(seed: int):
 @pytest.mark.parametrize("seed", [0, 1])
 def test_image_space_jacobian_matches_finite_differences(seed: int) -> None:
     problem, masks, start, truth, prior_sigmas = _image_space_setup(seed)
-    linearised = registration._image_space_terms(problem, start, masks, FX, truth, prior_sigmas)
+    linearised = pose_refinement._image_space_terms(problem, start, masks, FX, truth, prior_sigmas)
     # 5 degrees from the prior: its rotation residual's Jacobian differs from the identity
     rotation = Rotation.from_rotvec([0.0, 0.0, np.deg2rad(5.0)]).as_matrix() @ start[:3, :3]
     translation = start[:3, 3]
@@ -413,14 +415,14 @@ def test_image_space_refinement_reaches_the_huber_minimum(seed: int) -> None:
 
     problem, masks, start, truth, prior_sigmas = _image_space_setup(seed)
     for prior in (None, truth):
-        refined = registration._refine_pose_image_space(problem, start, masks, FX, prior, prior_sigmas)
-        linearised = registration._image_space_terms(problem, start, masks, FX, prior, prior_sigmas)
+        refined = pose_refinement.refine_pose_image_space(problem, start, masks, FX, prior, prior_sigmas)
+        linearised = pose_refinement._image_space_terms(problem, start, masks, FX, prior, prior_sigmas)
 
         def residuals(x: np.ndarray) -> np.ndarray:
             return linearised(Rotation.from_rotvec(x[:3]).as_matrix() @ start[:3, :3], start[:3, 3] + x[3:])[0]
 
         solution = least_squares(residuals, np.zeros(6), method="trf", loss="huber",
-                                 f_scale=registration.HUBER_SCALE, xtol=1e-12, ftol=1e-12, gtol=1e-12)
+                                 f_scale=pose_refinement.HUBER_SCALE, xtol=1e-12, ftol=1e-12, gtol=1e-12)
         reference = np.eye(4)
         reference[:3, :3] = Rotation.from_rotvec(solution.x[:3]).as_matrix() @ start[:3, :3]
         reference[:3, 3] = start[:3, 3] + solution.x[3:]

@@ -12,10 +12,10 @@ import numpy as np
 
 from jsr.config import Config
 from jsr.io.dataset import Frame
+from jsr.pipeline.correspondences import Correspondences, RegistrationResult
 from jsr.pipeline.maps import Map
 from jsr.pipeline.matching import guided_match, match_descriptors, match_planes
 from jsr.pipeline.measurements import FrameMeasurements
-from jsr.pipeline.registration import Correspondences, RegistrationResult
 
 
 @dataclass

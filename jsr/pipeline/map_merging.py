@@ -17,7 +17,8 @@ from jsr.geometry import transform_planes, transform_points
 from jsr.pipeline.association import inlier_mask
 from jsr.pipeline.maps import Keyframe, ObjectMap
 from jsr.pipeline.matching import match_descriptors
-from jsr.pipeline.registration import Correspondences, RegistrationResult, register
+from jsr.pipeline.correspondences import Correspondences, RegistrationResult
+from jsr.pipeline.registration import register
 from jsr.pipeline.state import FrameContext, SceneState
 
 logger = logging.getLogger(__name__)

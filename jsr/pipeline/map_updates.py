@@ -16,7 +16,7 @@ from jsr.pipeline.maps import Keyframe, ObjectMap
 from jsr.pipeline.measurements import FrameMeasurements, PointMeasurements
 from jsr.pipeline.object_registration import ObjectTrackingResult
 from jsr.pipeline.ownership import ownership_image
-from jsr.pipeline.registration import RegistrationResult
+from jsr.pipeline.correspondences import RegistrationResult
 from jsr.pipeline.state import MAX_OBJECT_ID, FrameAssignment, FrameContext, SceneState
 from jsr.pipeline.static_hygiene import holding_back, without_suspects
 from jsr.pipeline.vlad import VladVocabulary

@@ -24,7 +24,7 @@ from jsr.pipeline.measurements import FrameMeasurements
 from jsr.pipeline.ownership import pixel_box
 from jsr.pipeline.region_growth import UNSUPPORTED_STATIC_SHARE, grow
 from jsr.pipeline.region_motion import mostly_in_place, not_in_place, rigidly_moved, split_by_motion
-from jsr.pipeline.registration import depth_thresholds
+from jsr.pipeline.correspondences import depth_thresholds
 from jsr.pipeline.reidentification import reidentify
 from jsr.pipeline.state import FrameContext, SceneState
 from jsr.pipeline.static_tracking import static_inlier_landmarks

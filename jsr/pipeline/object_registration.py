@@ -22,7 +22,8 @@ from jsr.config import Config
 from jsr.pipeline.association import MatchedFrame, match_frame_guided, match_frame_to_map
 from jsr.pipeline.maps import ObjectMap
 from jsr.pipeline.measurements import FrameMeasurements
-from jsr.pipeline.registration import RegistrationResult, register
+from jsr.pipeline.correspondences import RegistrationResult
+from jsr.pipeline.registration import register
 from jsr.pipeline.vlad import SegmentIndex, VladVocabulary
 
 

@@ -20,7 +20,8 @@ from jsr.pipeline.detection import merge_adjacent_moving_segments
 from jsr.pipeline.free_space import FREE_SPACE_STRIDE, depth_at_projections
 from jsr.pipeline.matching import guided_match
 from jsr.pipeline.measurements import FrameMeasurements, Segments
-from jsr.pipeline.registration import depth_thresholds, register
+from jsr.pipeline.correspondences import depth_thresholds
+from jsr.pipeline.registration import register
 from jsr.pipeline.state import DetectionMemory, FrameContext, SceneState
 
 logger = logging.getLogger(__name__)

@@ -27,7 +27,8 @@ from jsr.pipeline.maps import ObjectMap
 from jsr.pipeline.measurements import FrameMeasurements
 from jsr.pipeline.object_registration import ObjectTrackingResult
 from jsr.pipeline.object_surfaces import SELF_TEXTURE_MIN, SURFACE_STRIDE
-from jsr.pipeline.registration import point3d_thresholds, register, surface_pose_result
+from jsr.pipeline.correspondences import point3d_thresholds
+from jsr.pipeline.registration import register, surface_pose_result
 from jsr.pipeline.state import FrameContext, SceneState
 from jsr.pipeline.surfaces import (Alignment, SurfaceModel, align_surfaces, anchors_pin, fitness, geometric_constraint,
                                    refine_fit, region_model, same_placement, sample_surface, seen_through_share,

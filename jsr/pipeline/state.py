@@ -28,7 +28,7 @@ from jsr.pipeline.maps import Map, ObjectMap
 from jsr.pipeline.measurements import FrameMeasurements
 from jsr.pipeline.object_registration import ObjectRegistrar, ObjectTrackingResult
 from jsr.pipeline.object_surfaces import ObjectSurfaces
-from jsr.pipeline.registration import RegistrationResult
+from jsr.pipeline.correspondences import RegistrationResult
 from jsr.pipeline.segments import depth_adjacent_segments
 from jsr.pipeline.vlad import SegmentIndex, VladVocabulary
 
