@@ -31,7 +31,7 @@ from jsr.config import Config
 from jsr.geometry import backproject_pixels, invert_transform, rotation_angle, transform_points
 from jsr.io.camera import CameraIntrinsics
 from jsr.io.dataset import Frame
-from jsr.pipeline.bundle import BundleScheduler
+from jsr.pipeline.bundle_scheduler import BundleScheduler
 from jsr.pipeline.frontend import FrontEnd
 from jsr.pipeline.maps import Map
 from jsr.pipeline.matching import guided_match
@@ -68,23 +68,17 @@ from jsr.pipeline.objects import (
 )
 from jsr.pipeline.registration import (RegistrationResult, depth_thresholds, evaluate_pose, point3d_thresholds,
                                       pose_cost, register, surface_pose_result)
-from jsr.pipeline.surfaces import (
-    Alignment,
-    SurfaceModel,
-    SurfaceSample,
-    align_surfaces,
+from jsr.pipeline.surface_alignment import Alignment, align_surfaces, refine_fit
+from jsr.pipeline.surface_evidence import (
     anchors_pin,
-    build_model,
     fitness,
     geometric_constraint,
-    refine_fit,
-    region_model,
     same_placement,
-    sample_surface,
     seen_through_share,
     texture_agreement,
     texture_pin,
 )
+from jsr.pipeline.surfaces import SurfaceModel, SurfaceSample, build_model, region_model, sample_surface
 from jsr.pipeline.vlad import SegmentIndex, VladVocabulary
 
 logger = logging.getLogger(__name__)

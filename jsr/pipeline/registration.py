@@ -66,7 +66,7 @@ from scipy.spatial.transform import Rotation
 from jsr.config import NoiseConfig, RansacConfig
 from jsr.geometry import cross_matrices, inlier_threshold
 from jsr.pipeline import solvers
-from jsr.pipeline.bundle import huber_cost
+from jsr.pipeline.robust_loss import huber_cost
 
 logger = logging.getLogger(__name__)
 
