@@ -21,9 +21,11 @@ from jsr.geometry import (
     rotation_angle,
     transform_points,
 )
-from jsr.pipeline.bundle import BundleProblem, BundleScheduler, apply_solution, bundle_adjust, huber_loss
+from jsr.pipeline.bundle import BundleProblem, apply_solution, bundle_adjust
+from jsr.pipeline.bundle_scheduler import BundleScheduler
 from jsr.geometry import transform_planes
 from jsr.pipeline.maps import Keyframe, Map
+from jsr.pipeline.robust_loss import huber_loss
 
 FX = FY = 525.0
 CX, CY = 319.5, 239.5

@@ -1,12 +1,14 @@
-"""Shape-based alignment of object surfaces (jsr.pipeline.surfaces)."""
+"""Shape-based alignment of object surfaces (jsr.pipeline.surfaces, jsr.pipeline.surface_alignment,
+jsr.pipeline.surface_evidence)."""
 
 import numpy as np
 
 from jsr.geometry import make_transform, rotation_about_axis, transform_points
 from scipy.spatial import cKDTree
 
-from jsr.pipeline.surfaces import (SurfaceSample, align_surfaces, build_model, geometric_constraint, sample_surface,
-                                   texture_agreement)
+from jsr.pipeline.surface_alignment import align_surfaces
+from jsr.pipeline.surface_evidence import geometric_constraint, texture_agreement
+from jsr.pipeline.surfaces import SurfaceSample, build_model, sample_surface
 
 VOXEL = 0.01
 
@@ -161,7 +163,7 @@ def test_seen_through_share_finds_a_model_placed_in_seen_empty_space():
     """A right placement puts the model on the surface the view measured; one 10 cm towards
     the camera, or 15 cm aside against a wall behind the box, puts it in space seen empty."""
     from jsr.config import load_config
-    from jsr.pipeline.surfaces import seen_through_share
+    from jsr.pipeline.surface_evidence import seen_through_share
 
     noise = load_config(None).noise
     points, colors = _box_faces()
@@ -231,7 +233,9 @@ def test_shape_alone_needs_a_pinned_unrivalled_fit_whose_texture_lines_up_where_
 
     from jsr.config import load_config
     from jsr.pipeline.reconstruct import Reconstructor
-    from jsr.pipeline.surfaces import Alignment, region_model, same_placement
+    from jsr.pipeline.surface_alignment import Alignment
+    from jsr.pipeline.surface_evidence import same_placement
+    from jsr.pipeline.surfaces import region_model
 
     config = load_config(None)
     owner = SimpleNamespace(config=config, intrinsics=_Intrinsics(), _surface_self_texture=lambda object_map: 1.0)
@@ -323,7 +327,9 @@ def test_shape_alone_lets_agreeing_landmark_matches_pin_a_fit_that_the_shape_lea
 
     from jsr.config import load_config
     from jsr.pipeline.reconstruct import Reconstructor
-    from jsr.pipeline.surfaces import Alignment, region_model, same_placement
+    from jsr.pipeline.surface_alignment import Alignment
+    from jsr.pipeline.surface_evidence import same_placement
+    from jsr.pipeline.surfaces import region_model
 
     config = load_config(None)
     owner = SimpleNamespace(config=config, intrinsics=_Intrinsics(), _surface_self_texture=lambda object_map: 1.0)
@@ -379,7 +385,8 @@ def test_shape_alone_lets_agreeing_landmark_matches_pin_a_fit_that_the_shape_lea
 def test_refine_fit_holds_a_sliding_surface_by_its_anchors():
     """refine_fit: a flat face slid 2 cm along itself stays slid under point-to-plane ICP;
     three landmark matches (anchors) bring it back."""
-    from jsr.pipeline.surfaces import refine_fit, region_model
+    from jsr.pipeline.surface_alignment import refine_fit
+    from jsr.pipeline.surfaces import region_model
 
     points, colors = _box_faces()
     face = points[:, 2] == points[:, 2].max()
@@ -425,7 +432,7 @@ def test_same_placement_compares_alignments_at_the_region():
     """Two alignments of a region 1.2 m in front of its camera (the region frame's origin):
     an 8-degree turn about the region is a small change, though it moves the camera 17 cm; a
     turn about the camera moves the region far."""
-    from jsr.pipeline.surfaces import same_placement
+    from jsr.pipeline.surface_evidence import same_placement
 
     centre = np.array([0.0, 0.0, 1.2])
     turn = rotation_about_axis([0.0, 1.0, 0.0], np.radians(8))
@@ -438,7 +445,8 @@ def test_same_placement_compares_alignments_at_the_region():
 def test_texture_sweep_finds_where_a_cylinder_turned_about_its_axis():
     """free_turn finds a cylinder side's axis; texture_sweep turns a fit 100 degrees off about
     it back to within a sweep step of the truth, and leaves a box corner (no free turn) alone."""
-    from jsr.pipeline.surfaces import free_turn, region_model, texture_sweep
+    from jsr.pipeline.surface_evidence import free_turn, texture_sweep
+    from jsr.pipeline.surfaces import region_model
 
     camera = _box_camera()
     points, _ = _cylinder_side(arc_degrees=200.0)
@@ -463,7 +471,8 @@ def test_anchors_pin_the_motions_a_surface_leaves_free():
     spread over it pin the fit, anchors at one spot leave the turn about them free; on a
     cylinder's side (free: its turn and its slide) one spot pins both; a box corner has no
     free motion to pin."""
-    from jsr.pipeline.surfaces import anchors_pin, region_model
+    from jsr.pipeline.surface_evidence import anchors_pin
+    from jsr.pipeline.surfaces import region_model
 
     camera = _box_camera()
     points, colors = _box_faces()
@@ -488,7 +497,8 @@ def test_anchors_pin_the_motions_a_surface_leaves_free():
 def test_a_refinement_that_loses_fit_and_texture_is_not_kept():
     """Coloured ICP that slides a right fit away (less of the region on the model, texture
     lined up worse) is undone; one that improves either is kept."""
-    from jsr.pipeline.surfaces import _kept_refinement, region_model
+    from jsr.pipeline.surface_alignment import _kept_refinement
+    from jsr.pipeline.surfaces import region_model
 
     camera = _box_camera()
     points, _ = _cylinder_side(arc_degrees=200.0)

@@ -32,23 +32,19 @@ Residuals, each divided by its sigma so that the Huber scale is in sigmas:
   landmark: the normal difference (3) over ``plane_normal_sigma`` and the offset difference
   (1) over ``plane_offset_sigma``.
 
-``scipy.optimize.least_squares(method="trf")`` with a Huber loss (:func:`huber_loss`: scipy's
-``"huber"`` cost with reweighted-least-squares curvature) solves it with a finite-difference
-Jacobian whose sparsity pattern is given (each residual block touches one keyframe and one
-landmark), so one Jacobian costs about a dozen residual evaluations.
+``scipy.optimize.least_squares(method="trf")`` with a Huber loss
+(:func:`~jsr.pipeline.robust_loss.huber_loss`: scipy's ``"huber"`` cost with
+reweighted-least-squares curvature) solves it with a finite-difference Jacobian whose
+sparsity pattern is given (each residual block touches one keyframe and one landmark), so one
+Jacobian costs about a dozen residual evaluations.
 
-Asynchrony (:class:`BundleScheduler`): the problem is gathered (copied) from the live map in the
-caller's thread, solved in a worker thread, and applied at the next ``apply_finished`` call,
-which waits for the job if needed. The output therefore never depends on thread timing, and the
-synchronous mode (same code, solved in the caller's thread) gives bit-identical maps.
+Running it beside tracking, in a worker thread, is :mod:`jsr.pipeline.bundle_scheduler`.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-import weakref
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -59,6 +55,7 @@ from scipy.spatial.transform import Rotation
 from jsr.config import BundleAdjustmentConfig, NoiseConfig
 from jsr.geometry import invert_transform
 from jsr.pipeline.maps import Map
+from jsr.pipeline.robust_loss import huber_cost, huber_loss
 
 logger = logging.getLogger(__name__)
 
@@ -131,33 +128,6 @@ def _tangent_bases(normals: np.ndarray) -> np.ndarray:
     first /= np.linalg.norm(first, axis=1, keepdims=True)
     second = np.cross(normals, first)
     return np.stack([first, second], axis=2)
-
-
-def huber_loss(z: np.ndarray) -> np.ndarray:
-    """Huber ``rho(z)`` of ``z = (r / f_scale)^2`` for ``least_squares(loss=...)``, rows
-    ``rho, rho', rho''``, with ``rho''`` reported as 0.
-
-    The cost is exactly scipy's ``loss="huber"``. The difference is the curvature: scipy scales
-    each residual's Jacobian row by ``sqrt(rho' + 2 rho'' z)``, which is 0 on the linear part of
-    the Huber loss, so every residual beyond ``f_scale`` loses all its Gauss-Newton curvature and
-    the quadratic model becomes wildly optimistic (measured: 50 evaluations without converging
-    on a 2 cm / 1 degree perturbation, where this version needs 14). With ``rho'' = 0`` the rows
-    are scaled by ``sqrt(rho')``: the iteratively reweighted least-squares model Ceres uses.
-    """
-    rho = np.empty((3, len(z)))
-    inside = z <= 1.0
-    root = np.sqrt(z)
-    rho[0] = np.where(inside, z, 2.0 * root - 1.0)
-    rho[1] = np.where(inside, 1.0, 1.0 / np.maximum(root, 1e-300))
-    rho[2] = 0.0
-    return rho
-
-
-def huber_cost(residuals: np.ndarray, f_scale: float) -> float:
-    """scipy's cost for ``loss="huber"``: ``0.5 * sum(f_scale^2 * rho((r / f_scale)^2))``."""
-    z = (residuals / f_scale) ** 2
-    rho = np.where(z <= 1.0, z, 2.0 * np.sqrt(z) - 1.0)
-    return float(0.5 * f_scale**2 * rho.sum())
 
 
 def _block_entries(rows_per_obs: int, row_offset: int, obs_count: int, col_starts: np.ndarray, cols_per_block: int):
@@ -624,92 +594,3 @@ def bundle_adjust(
     solution = problem.solve(config)
     apply_solution(map, solution)
     return solution.result
-
-
-class BundleScheduler:
-    """Runs bundle adjustment of each map every ``every_keyframes`` keyframes, off the caller's
-    thread, with results that do not depend on timing.
-
-    * :meth:`maybe_start` (after a keyframe was added): if due, copies the window into a
-      :class:`BundleProblem` now and submits the solve to a single worker thread.
-    * :meth:`apply_finished` applies the job of that map at the next call after it was started,
-      waiting for it if needed (``wait=True``, the deterministic mode). With ``wait=False`` it
-      applies only a job that is already done -- timing-dependent, for callers that prefer that.
-    * :meth:`finish` waits and applies; :meth:`shutdown` stops the worker.
-
-    With ``config.asynchronous`` false the solve runs inside :meth:`maybe_start` but is still
-    applied at the next :meth:`apply_finished`, so both modes give identical maps. A map with a
-    job in flight gets its result applied (waiting) before a new job is started.
-    """
-
-    def __init__(self, config: BundleAdjustmentConfig, noise: NoiseConfig, intrinsics_matrix: np.ndarray):
-        self.config = config
-        self.noise = noise
-        self.intrinsics_matrix = np.asarray(intrinsics_matrix, dtype=float).copy()
-        self.results: list[BundleResult] = []
-        self._executor: ThreadPoolExecutor | None = None
-        self._pending: weakref.WeakKeyDictionary[Map, Future] = weakref.WeakKeyDictionary()
-        self._started_at: weakref.WeakKeyDictionary[Map, int] = weakref.WeakKeyDictionary()
-
-    def pending(self, map: Map) -> bool:
-        """True if a job of ``map`` was started and not applied yet."""
-        return map in self._pending
-
-    def maybe_start(self, map: Map, window: int | None = None) -> bool:
-        """Start a run on a snapshot of ``map`` if ``every_keyframes`` keyframes were added since
-        the last start; returns True if one was started."""
-        config = self.config
-        if not config.enabled:
-            return False
-        count = len(map.keyframes)
-        if count - self._started_at.get(map, 0) < config.every_keyframes:
-            return False
-        if map in self._pending:
-            self.apply_finished(map, wait=True)
-        self._started_at[map] = count
-        problem = BundleProblem.from_map(map, config, self.noise, self.intrinsics_matrix, window)
-        if problem is None:
-            return False
-        if config.asynchronous:
-            if self._executor is None:
-                self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jsr-bundle")
-            future = self._executor.submit(problem.solve, config)
-        else:
-            future = Future()
-            try:
-                future.set_result(problem.solve(config))
-            except Exception as error:  # raised at apply time, as in the asynchronous mode
-                future.set_exception(error)
-        self._pending[map] = future
-        logger.debug("%s: bundle adjustment started at %d keyframes (%s)", map.name, count,
-                     "asynchronous" if config.asynchronous else "synchronous")
-        return True
-
-    def apply_finished(self, map: Map, wait: bool = True) -> BundleResult | None:
-        """Apply the started job of ``map`` (waiting for it if ``wait``); returns its result, or
-        None if there was none (or, with ``wait=False``, it is still running)."""
-        future = self._pending.get(map)
-        if future is None or (not wait and not future.done()):
-            return None
-        del self._pending[map]
-        solution: BundleSolution = future.result()  # re-raises an error of the worker
-        apply_solution(map, solution)
-        self.results.append(solution.result)
-        return solution.result
-
-    def finish(self, map: Map) -> BundleResult | None:
-        """Wait for and apply the job of ``map``, if any."""
-        return self.apply_finished(map, wait=True)
-
-    def shutdown(self) -> None:
-        """Stop the worker; jobs not applied yet are discarded (call :meth:`finish` first to keep them)."""
-        if self._executor is not None:
-            self._executor.shutdown(wait=True, cancel_futures=True)
-            self._executor = None
-        self._pending = weakref.WeakKeyDictionary()
-
-    def __enter__(self) -> "BundleScheduler":
-        return self
-
-    def __exit__(self, *exc_info) -> None:
-        self.shutdown()

@@ -16,8 +16,8 @@ from jsr.geometry import transform_points
 from jsr.io.camera import CameraIntrinsics
 from jsr.io.dataset import Frame
 from jsr.pipeline.maps import ObjectMap
-from jsr.pipeline.surfaces import SurfaceModel, SurfaceSample, build_model, fitness, region_model, sample_surface, \
-    texture_agreement
+from jsr.pipeline.surface_evidence import fitness, texture_agreement
+from jsr.pipeline.surfaces import SurfaceModel, SurfaceSample, build_model, region_model, sample_surface
 
 SURFACE_STRIDE = 2  # object surface samples (shape-based re-identification) use every 2nd pixel and row
 EXTENT_SURFACE_STEP = 8  # an object's extent takes every 8th of its surface samples (objects.extent_from_surface) ...
@@ -98,7 +98,7 @@ class ObjectSurfaces:
         return np.vstack(parts)
 
     def self_texture(self, object_map: ObjectMap) -> float | None:
-        """Median texture agreement (:func:`~jsr.pipeline.surfaces.texture_agreement`) of
+        """Median texture agreement (:func:`~jsr.pipeline.surface_evidence.texture_agreement`) of
         each of the object's last keyframe surface samples with the model of its other
         keyframes, at their bundle-adjusted poses: how well the object's own views line up
         (noise, shading, pose error). Only samples that mostly overlap the others count

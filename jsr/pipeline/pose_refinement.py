@@ -15,7 +15,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from jsr.geometry import cross_matrices
-from jsr.pipeline.bundle import huber_cost
+from jsr.pipeline.robust_loss import huber_cost
 from jsr.pipeline.correspondences import depth_thresholds
 from jsr.pipeline.pose_scoring import RegistrationProblem
 
@@ -244,7 +244,7 @@ def _minimise_huber(linearised: Callable[[np.ndarray, np.ndarray], tuple[np.ndar
     """Pose ``(rotation (3, 3), translation (3,))`` minimising the Huber cost (``scale``) of
     ``linearised(rotation, translation) -> (residuals (M,), jacobian (M, 6))``: Levenberg-
     Marquardt on iteratively reweighted normal equations (the curvature model of
-    :func:`~jsr.pipeline.bundle.huber_loss`), each step ``[w, dt]`` applied as
+    :func:`~jsr.pipeline.robust_loss.huber_loss`), each step ``[w, dt]`` applied as
     ``(Exp(w) rotation, translation + dt)``. None if the cost is not finite.
 
     Written out rather than ``scipy.optimize.least_squares``: with six unknowns and analytic

@@ -32,7 +32,7 @@ import numpy as np
 from jsr.config import Config
 from jsr.io.camera import CameraIntrinsics
 from jsr.io.dataset import Frame
-from jsr.pipeline.bundle import BundleScheduler
+from jsr.pipeline.bundle_scheduler import BundleScheduler
 from jsr.pipeline.classify import classify_frame
 from jsr.pipeline.free_space import FreeSpaceViews
 from jsr.pipeline.frontend import FrontEnd

@@ -30,9 +30,10 @@ from jsr.pipeline.object_surfaces import SELF_TEXTURE_MIN, SURFACE_STRIDE
 from jsr.pipeline.correspondences import point3d_thresholds
 from jsr.pipeline.registration import register, surface_pose_result
 from jsr.pipeline.state import FrameContext, SceneState
-from jsr.pipeline.surfaces import (Alignment, SurfaceModel, align_surfaces, anchors_pin, fitness, geometric_constraint,
-                                   refine_fit, region_model, same_placement, sample_surface, seen_through_share,
-                                   texture_agreement, texture_pin)
+from jsr.pipeline.surface_alignment import Alignment, align_surfaces, refine_fit
+from jsr.pipeline.surface_evidence import (anchors_pin, fitness, geometric_constraint, same_placement, seen_through_share,
+                                           texture_agreement, texture_pin)
+from jsr.pipeline.surfaces import SurfaceModel, region_model, sample_surface
 
 logger = logging.getLogger(__name__)
 
@@ -77,7 +78,7 @@ def align_to_lost_objects(state: SceneState, ctx: FrameContext, group: list[int]
                           own_textures: dict[int, float | None], outcomes: dict[int, ObjectTrackingResult]) -> bool:
     """The region's surface (``region``, camera frame) aligned to each lost object's surface
     model (``models``; ``own_textures`` caches ``ObjectSurfaces.self_texture`` per map)
-    (:func:`~jsr.pipeline.surfaces.align_surfaces`); each alignment is a pose prediction
+    (:func:`~jsr.pipeline.surface_alignment.align_surfaces`); each alignment is a pose prediction
     for prediction-based matching of the region's keypoints with the object's landmarks
     (``objects.shape_radius_px``). The registration with most inliers wins if it succeeds
     with at least ``ransac.min_inliers`` inliers and stays near its prediction (20 cm, 30
@@ -259,10 +260,10 @@ def shape_alone(state: SceneState, object_map: ObjectMap, region: SurfaceModel, 
     - leave the model where this view (``view``, the frame's depth) saw it or something in
       front of it: of the model's points that face the camera and fall where the frame
       measured depth, at most ``objects.shape_max_seen_through`` seen through
-      (:func:`~jsr.pipeline.surfaces.seen_through_share`). Measured: right fits 0-0.4%;
+      (:func:`~jsr.pipeline.surface_evidence.seen_through_share`). Measured: right fits 0-0.4%;
       wrong fits on kitchen_box120 10-90%. A fit that the view sees
       through is no rival either: the object cannot be there;
-    - line up the object's texture (:func:`~jsr.pipeline.surfaces.texture_agreement`) at
+    - line up the object's texture (:func:`~jsr.pipeline.surface_evidence.texture_agreement`) at
       least ``objects.shape_min_texture_ratio`` times as well as the object's own views
       line up with each other (``ObjectSurfaces.self_texture``, which must be at least
       SELF_TEXTURE_MIN: an object of one colour has no texture to tell its fits apart).
@@ -270,7 +271,7 @@ def shape_alone(state: SceneState, object_map: ObjectMap, region: SurfaceModel, 
       (right fits 2.2-2.4 times the own views' colour residual on kitchen_box120 and
       synth_jump, as much as a box turned over), not how its texture lines up (right fits
       0.57-0.94 of the own views' agreement, wrong ones that the view allows at most 0.32);
-    - be pinned by shape (:func:`~jsr.pipeline.surfaces.geometric_constraint` at least
+    - be pinned by shape (:func:`~jsr.pipeline.surface_evidence.geometric_constraint` at least
       ``objects.shape_min_constraint``): along a free motion (a box seen on one face or
       two, a cylinder turned about its axis) that the texture lines up well does not pin
       the fit (synth_two seed 5: a fit 14 degrees off along it, texture agreement 0.87 of
@@ -285,11 +286,11 @@ def shape_alone(state: SceneState, object_map: ObjectMap, region: SurfaceModel, 
         5 of 6 and 5 of 9 guided matches within 1.1 cm of the right fit, too few to
         register on their own);
       - or else by the texture's peak along the free motions
-        (:func:`~jsr.pipeline.surfaces.texture_pin`, which moves the fit to the peak);
+        (:func:`~jsr.pipeline.surface_evidence.texture_pin`, which moves the fit to the peak);
     - have no rival: no other fit that the view allows, as complete (fitness within 0.1)
       and elsewhere, whose texture passes the same test.
     The fit chosen is the one whose texture lines up best; one pinned by shape is returned
-    refined by geometry alone (:func:`~jsr.pipeline.surfaces.refine_fit`), one pinned by
+    refined by geometry alone (:func:`~jsr.pipeline.surface_alignment.refine_fit`), one pinned by
     landmarks refined on both, one pinned by texture at its texture's peak.
     """
     config = state.config.objects
@@ -359,7 +360,7 @@ def shape_alone(state: SceneState, object_map: ObjectMap, region: SurfaceModel, 
 
 
 def seen_through(state: SceneState, model: SurfaceModel, T_o_c: np.ndarray, view: DepthView) -> float | None:
-    """:func:`~jsr.pipeline.surfaces.seen_through_share` of the object's surface model at
+    """:func:`~jsr.pipeline.surface_evidence.seen_through_share` of the object's surface model at
     ``T_o_c`` in this frame's ``view`` (beyond SHAPE_SEEN_THROUGH voxels and sigmas)."""
     return seen_through_share(model, T_o_c, view, state.intrinsics, state.config.noise,
                               SHAPE_SEEN_THROUGH_VOXELS * state.config.objects.shape_voxel,
@@ -371,7 +372,7 @@ def pin_by_anchors(config: Config, region: SurfaceModel, model: SurfaceModel, tr
     """Whether landmark matches at ``points`` ``(K, 3)`` (camera frame) pin the surface fit
     ``T_o_c``: at least ``detection.min_segment_features`` of them (fewer may agree by
     chance), and placed so that every motion the shape leaves free moves them
-    (:func:`~jsr.pipeline.surfaces.anchors_pin`, ANCHOR_MIN_MOTION_SHARE)."""
+    (:func:`~jsr.pipeline.surface_evidence.anchors_pin`, ANCHOR_MIN_MOTION_SHARE)."""
     if len(points) < max(3, config.detection.min_segment_features):
         return False
     objects = config.objects

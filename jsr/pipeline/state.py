@@ -22,7 +22,7 @@ from jsr.config import Config
 from jsr.io.camera import CameraIntrinsics
 from jsr.io.dataset import Frame
 from jsr.pipeline.association import MatchedFrame, inlier_mask
-from jsr.pipeline.bundle import BundleScheduler
+from jsr.pipeline.bundle_scheduler import BundleScheduler
 from jsr.pipeline.free_space import FreeSpaceViews
 from jsr.pipeline.maps import Map, ObjectMap
 from jsr.pipeline.measurements import FrameMeasurements
