@@ -1141,7 +1141,8 @@ class _FrameSegments:
 def _frame_context(measurements, **computed) -> FrameContext:
     """A frame context at the identity camera pose, bridged (no static matches), with the given
     per-frame values (``adjacency``, ``free_space``) already computed."""
-    return FrameContext(frame=SimpleNamespace(), measurements=measurements, report=SimpleNamespace(T_w_c=np.eye(4)),
+    return FrameContext(frame=SimpleNamespace(depth=None), measurements=measurements,
+                        report=SimpleNamespace(T_w_c=np.eye(4)),
                         timings={}, static=SimpleNamespace(bridged=True), **computed)
 
 @pytest.mark.parametrize("violations, grown", [(20, [0, 1]), (5, [0])])

@@ -124,11 +124,11 @@ class _Intrinsics:
 
 
 def _depth_view(camera_points, wall_depth=None, shape=(240, 320)):
-    """A :class:`~jsr.pipeline.objects.DepthView` (stride 2, camera frame) of ``(N, 3)``
+    """A :class:`~jsr.pipeline.free_space.DepthView` (stride 2, camera frame) of ``(N, 3)``
     camera-frame points rendered into a z-buffer, in front of a wall at ``wall_depth`` m
     (None: no depth elsewhere)."""
     from jsr.geometry import project_points
-    from jsr.pipeline.objects import DepthView
+    from jsr.pipeline.free_space import DepthView
 
     depth = np.full(shape, np.inf if wall_depth is None else wall_depth, dtype=np.float64)
     uv = np.round(project_points(camera_points, _Intrinsics.fx, _Intrinsics.fy, _Intrinsics.cx,
@@ -225,30 +225,29 @@ def test_texture_agreement_sees_whether_the_texture_lines_up():
 
 
 def test_shape_alone_needs_a_pinned_unrivalled_fit_whose_texture_lines_up_where_the_view_allows_it():
-    """Reconstructor._shape_alone: the rules that let a surface alignment re-identify a lost
+    """shape_reidentification.shape_alone: the rules that let a surface alignment re-identify a lost
     object without landmark matches. The region is the box seen from ``camera``; the right
     alignment is ``camera`` (model <- region camera). The object's own views are stubbed to
     line up perfectly (texture agreement 1.0)."""
     from types import SimpleNamespace
 
     from jsr.config import load_config
-    from jsr.pipeline.reconstruct import Reconstructor
+    from jsr.pipeline.shape_reidentification import shape_alone
     from jsr.pipeline.surface_alignment import Alignment
     from jsr.pipeline.surface_evidence import same_placement
     from jsr.pipeline.surfaces import region_model
 
     config = load_config(None)
-    owner = SimpleNamespace(config=config, intrinsics=_Intrinsics(), _surface_self_texture=lambda object_map: 1.0)
-    owner._anchors_pin = lambda *args: Reconstructor._anchors_pin(owner, *args)
-    owner._seen_through = lambda *args: Reconstructor._seen_through(owner, *args)
+    state = SimpleNamespace(config=config, intrinsics=_Intrinsics())
+    own_texture = 1.0  # how well the object's own views line up
     camera, seen, box, region, view = _box_scene()
     turned = make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.pi), np.zeros(3)) @ camera
     shifted = make_transform(np.eye(3), [0.03, 0.0, 0.0]) @ camera
 
     def alone(alignments, region=region, model=box, view=view):
-        """The fit _shape_alone returns, as ``right``, ``"other"`` (another placement) or None."""
-        chosen = Reconstructor._shape_alone(owner, SimpleNamespace(object_id=1), region, model, alignments, view,
-                                            owner._surface_self_texture(None))
+        """The fit shape_alone returns, as ``right``, ``"other"`` (another placement) or None."""
+        chosen = shape_alone(state, SimpleNamespace(object_id=1), region, model, alignments, view,
+                                            own_texture)
         if chosen is None:
             return None
         centre = region.points.mean(axis=0)
@@ -282,20 +281,20 @@ def test_shape_alone_needs_a_pinned_unrivalled_fit_whose_texture_lines_up_where_
     assert alone([right], view=farther) is None
     assert alone([right], view=_depth_view(np.zeros((0, 3)))) is None  # no depth to check it against
     # the object's own views: the region must line up at least half as well as they do
-    owner._surface_self_texture = lambda object_map: 0.4
+    own_texture = 0.4
     assert alone([right]) is right
     blend = np.random.default_rng(1).integers(0, 256, seen.colors.shape)
     noisy = region_model(SurfaceSample(seen.points, (0.3 * seen.colors + 0.7 * blend).astype(np.uint8)), VOXEL)
     noisy_agreement = texture_agreement(noisy, box, cKDTree(box.points), camera, VOXEL)
     assert 0.25 < noisy_agreement < 0.6
     assert alone([right], region=noisy) is right  # within half of how well the own views line up
-    owner._surface_self_texture = lambda object_map: 1.0
+    own_texture = 1.0
     assert alone([right], region=noisy) is None
-    owner._surface_self_texture = lambda object_map: 0.1
+    own_texture = 0.1
     assert alone([right]) is None  # the object's own views hardly line up (one colour): nothing to trust
-    owner._surface_self_texture = lambda object_map: None
+    own_texture = None
     assert alone([right]) is None  # one view of the object: nothing to compare with
-    owner._surface_self_texture = lambda object_map: 1.0
+    own_texture = 1.0
     # a cylinder's side turns about its axis: its shape does not pin the fit; painted in rings,
     # its texture, though it lines up, does not either (it is the same all along the turn)
     cylinder_points, _ = _cylinder_side()
@@ -309,32 +308,31 @@ def test_shape_alone_needs_a_pinned_unrivalled_fit_whose_texture_lines_up_where_
     cylinder = build_model([(camera, cylinder_seen)], VOXEL)
     cylinder_region = region_model(cylinder_seen, VOXEL)
     off = make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.radians(6.0)), np.zeros(3)) @ camera
-    pinned = Reconstructor._shape_alone(owner, SimpleNamespace(object_id=1), cylinder_region, cylinder,
+    pinned = shape_alone(state, SimpleNamespace(object_id=1), cylinder_region, cylinder,
                                         [Alignment(off, 0.98, 0.07)], _depth_view(cylinder_seen.points.astype(float)),
-                                        owner._surface_self_texture(None))
+                                        own_texture)
     assert pinned is not None
     assert same_placement(pinned.T_model_region, camera, cylinder_region.points.mean(axis=0), 0.005, 1.5)
-    owner.config = load_config(None, ["objects.shape_min_texture_ratio=0"])
+    state.config = load_config(None, ["objects.shape_min_texture_ratio=0"])
     assert alone([right]) is None  # switched off: only fits that landmarks confirm
 
 
 def test_shape_alone_lets_agreeing_landmark_matches_pin_a_fit_that_the_shape_leaves_free():
-    """Reconstructor._shape_alone with ``landmark_anchors``: a cylinder's side painted in
+    """shape_reidentification.shape_alone with ``anchors_of``: a cylinder's side painted in
     rings, its fit turned 6 degrees about the axis (free for its shape and texture), and
     keypoints on it matched to landmarks at their true places. Five spread matches that agree
     with the fit pin it and refine it onto the truth; four do not."""
     from types import SimpleNamespace
 
     from jsr.config import load_config
-    from jsr.pipeline.reconstruct import Reconstructor
+    from jsr.pipeline.shape_reidentification import shape_alone
     from jsr.pipeline.surface_alignment import Alignment
     from jsr.pipeline.surface_evidence import same_placement
     from jsr.pipeline.surfaces import region_model
 
     config = load_config(None)
-    owner = SimpleNamespace(config=config, intrinsics=_Intrinsics(), _surface_self_texture=lambda object_map: 1.0)
-    owner._anchors_pin = lambda *args: Reconstructor._anchors_pin(owner, *args)
-    owner._seen_through = lambda *args: Reconstructor._seen_through(owner, *args)
+    state = SimpleNamespace(config=config, intrinsics=_Intrinsics())
+    own_texture = 1.0  # how well the object's own views line up
     camera = _box_camera()
     cylinder_points, _ = _cylinder_side()
     seen = _view(cylinder_points, _rings(cylinder_points), camera)
@@ -359,8 +357,8 @@ def test_shape_alone_lets_agreeing_landmark_matches_pin_a_fit_that_the_shape_lea
         return anchors
 
     def alone(anchors):
-        return Reconstructor._shape_alone(owner, SimpleNamespace(object_id=1), region, cylinder, [fit], view,
-                                          owner._surface_self_texture(None), anchors)
+        return shape_alone(state, SimpleNamespace(object_id=1), region, cylinder, [fit], view,
+                                          own_texture, anchors)
 
     assert alone(None) is None  # the shape alone leaves the turn free
     pinned = alone(anchors_from(spread))
@@ -369,15 +367,15 @@ def test_shape_alone_lets_agreeing_landmark_matches_pin_a_fit_that_the_shape_lea
     assert alone(anchors_from(spread[:4])) is None  # fewer than detection.min_segment_features
     # a refinement that loses texture agreement (the surface model pulls it off) is not kept:
     # the fit itself, pinned by the matches, is
-    import jsr.pipeline.reconstruct as reconstruct_module
+    import jsr.pipeline.shape_reidentification as reidentification
 
-    refine = reconstruct_module.refine_fit
+    refine = reidentification.refine_fit
     astray = make_transform(np.eye(3), [0.0, 0.0, 0.03]) @ camera
     try:
-        reconstruct_module.refine_fit = lambda *args, **kwargs: astray
+        reidentification.refine_fit = lambda *args, **kwargs: astray
         kept = alone(anchors_from(spread))
     finally:
-        reconstruct_module.refine_fit = refine
+        reidentification.refine_fit = refine
     assert kept is not None and np.allclose(kept.T_model_region, turned)
     assert alone(anchors_from(spread, spread[::-1])) is None  # wrong matches: none agree with the fit
 
@@ -403,28 +401,27 @@ def test_refine_fit_holds_a_sliding_surface_by_its_anchors():
 
 
 def test_surface_agrees_with_a_landmark_pose_where_it_lies_on_the_model_the_view_allows_it_and_texture_lines_up():
-    """Reconstructor._surface_agrees: a pose the landmarks found, checked by the surface."""
+    """shape_reidentification.surface_agrees: a pose the landmarks found, checked by the surface."""
     from types import SimpleNamespace
 
     from jsr.config import load_config
-    from jsr.pipeline.reconstruct import Reconstructor
+    from jsr.pipeline.shape_reidentification import surface_agrees
     from jsr.pipeline.surfaces import region_model
 
-    owner = SimpleNamespace(config=load_config(None), intrinsics=_Intrinsics(),
-                            _surface_self_texture=lambda object_map: 1.0)
-    owner._seen_through = lambda *args: Reconstructor._seen_through(owner, *args)
+    state = SimpleNamespace(config=load_config(None), intrinsics=_Intrinsics())
+    own_texture = 1.0  # how well the object's own views line up
     camera, seen, box, region, view = _box_scene()
 
     def agrees(T, region=region):
-        return Reconstructor._surface_agrees(owner, SimpleNamespace(object_id=1), region, box, T, view,
-                                             owner._surface_self_texture(None))
+        return surface_agrees(state, SimpleNamespace(object_id=1), region, box, T, view,
+                                             own_texture)
 
     assert agrees(camera)
     assert not agrees(camera @ np.linalg.inv(make_transform(np.eye(3), [0.0, 0.0, -0.15])))  # seen through
     assert not agrees(make_transform(np.eye(3), [0.5, 0.0, 0.0]) @ camera)  # off the model
     shuffled = region_model(SurfaceSample(seen.points, np.random.default_rng(0).permutation(seen.colors)), VOXEL)
     assert not agrees(camera, region=shuffled)  # the texture does not line up
-    owner._surface_self_texture = lambda object_map: None
+    own_texture = None
     assert not agrees(camera)  # nothing to compare the texture with
 
 

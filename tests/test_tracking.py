@@ -59,7 +59,7 @@ def test_tracking_loss_is_survived_and_relocalised(static_sequence, tmp_path):
         cv2.imwrite(str(entry.depth_path), np.zeros((240, 320), np.uint16))
     reconstructor, reports = track(sequence)
     assert [r.tracked for r in reports[12:18]] == [False] * 6
-    assert reconstructor.frames_lost == 6
+    assert reconstructor.state.camera.frames_lost == 6
     assert reports[18].tracked and reports[18].relocalised
     assert all(r.tracked for r in reports[18:])
     assert ate(reports, sequence) < 0.015
@@ -80,7 +80,7 @@ def test_previous_frame_bridges_what_the_map_cannot_see(static_sequence):
     _, without_bridge = track(sequence, strict + ["matching.bridge_with_previous_frame=false"])
     reconstructor, with_bridge = track(sequence, strict)
     assert sum(not r.tracked for r in without_bridge) > 0
-    assert reconstructor.frames_bridged > 0
+    assert reconstructor.state.camera.frames_bridged > 0
     bridged = [r for r in with_bridge if r.bridged]
     assert all(r.new_keyframe for r in bridged)  # the map grows into the new view
     assert sum(r.tracked for r in with_bridge) > sum(r.tracked for r in without_bridge)
