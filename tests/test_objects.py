@@ -792,7 +792,7 @@ def test_moving_region_too_poor_to_start_gets_detail_boxes(jump_sequence):
 
 @pytest.fixture(scope="module")
 def resting_turn_sequence(tmp_path_factory):
-    """Seed 3 of two jumping objects (60 frames; the tests use the first 23 or 50): at frame 19 the
+    """Seed 3 of two jumping objects (60 frames; the tests use the first 25 or 50): at frame 19 the
     cylinder (18 cm across) turns 35 degrees about its axis and comes to rest 8 cm away. Only
     6-9 of its static landmarks are matched as outliers per frame, all found again near their
     projections."""
@@ -804,15 +804,19 @@ def resting_turn_sequence(tmp_path_factory):
 @pytest.mark.parametrize("memory_frames", [0, 3])
 def test_object_that_turned_and_rests_is_detected(resting_turn_sequence, memory_frames):
     """detection.in_place_turn_memory_frames: too few agreeing outliers for one frame, but the
-    same turn in two frames, starts the cylinder's map within 3 frames of its motion."""
+    same turn in two frames, starts the cylinder's map within 5 frames of its motion."""
+    # Measured (the sequence as generated and 4 copies with +-1 grey level and +-1 depth unit on
+    # 2% of the pixels): with the memory the map starts 2 or 3 frames after the motion (frame 21
+    # or 22), without it not up to frame 26 (first + 7). The test used to stop at frame 22 and
+    # allow 3 frames: a start one frame later would not have been seen.
     first_motion = first_motion_frame(resting_turn_sequence, 2)
-    sequence = open_sequence(resting_turn_sequence, max_frames=first_motion + 4)
+    sequence = open_sequence(resting_turn_sequence, max_frames=first_motion + 6)
     # without detection by displaced landmarks, which finds the cylinder in other ways
     result = run(resting_turn_sequence, [f"detection.in_place_turn_memory_frames={memory_frames}",
                                          "detection.displaced_share=0"], sequence=sequence)
     cylinder_maps = frames_creating_maps_of(result, resting_turn_sequence, 2)
     if memory_frames:
-        assert cylinder_maps and first_motion <= cylinder_maps[0] <= first_motion + 3
+        assert cylinder_maps and first_motion <= cylinder_maps[0] <= first_motion + 5
     else:
         assert not cylinder_maps
 
@@ -1328,31 +1332,39 @@ def test_object_lost_where_it_stood_is_found_again(returning_sequence):
 
 
 @pytest.fixture(scope="module")
-def new_side_jump_sequence(tmp_path_factory):
-    """Seed 1 of two jumping objects (60 frames; the test uses the first 14): at frame 10 the
-    box (object 1) jumps 10 cm and turns 20 degrees. One face carries its moved static
-    landmarks; the other face it shows has 24 keypoints, 3 of them matched (as outliers), 40%
-    of it in space the static keyframes saw empty and the rest where they saw the box's old
-    face."""
-    root = tmp_path_factory.mktemp("objects") / "new_side_jump"
-    generate_sequence(root, full_size_options(objects=2, seed=1))
+def face_moved_in_sequence(tmp_path_factory):
+    """Seed 7 of two jumping objects (60 frames; the tests use the first 14): at frame 10 the
+    box (object 1) jumps, and without objects.grow_violation_share and objects.grow_unmatched a
+    face of it goes to the static map (recall 0.61-0.65 in frames 10-13)."""
+    root = tmp_path_factory.mktemp("objects") / "face_moved_in"
+    generate_sequence(root, full_size_options(objects=2, seed=7))
     return root
 
 
+# Seed 1 of two jumping objects, on which the two tests below ran before, sat at a knife edge:
+# without either rule the box kept about half of its pixels (recall 0.53), or all of them (0.99)
+# on 1 of 5 copies of it with +-1 grey level and +-1 depth unit on 2% of the pixels.
+
+
 @pytest.mark.parametrize("violation_share", [0.0, 0.3])
-def test_face_that_moved_in_is_grown_into_its_object(new_side_jump_sequence, violation_share):
-    """objects.grow_violation_share: the box's second face, no static inlier among its
-    keypoints and partly in space seen empty, joins the box's map when it is detected; without
-    the rule it goes to the static map and the box keeps about half of its pixels (from frame
-    11 on objects.grow_unmatched also takes it, 3 of its 24 keypoints matched: off here)."""
-    root = new_side_jump_sequence
-    result = run(root, [f"objects.grow_violation_share={violation_share}", "objects.grow_unmatched=false"],
-                 sequence=open_sequence(root, max_frames=14))
-    recalls = object_recalls(result, root, 1, result.reports[10:])
-    if violation_share:
-        assert min(recalls) > 0.9, recalls
-    else:
-        assert max(recalls) < 0.7, recalls
+def test_face_that_moved_in_is_grown_into_its_object(face_moved_in_sequence, partial_view_jump_sequence,
+                                                     violation_share):
+    """objects.grow_violation_share: a face of the box that jumped at frame 10, no static
+    inlier among its keypoints and partly in space seen empty, joins the box's map; without
+    the rule it goes to the static map (objects.grow_unmatched, which also takes it on seed 7
+    from frame 12, off here)."""
+    # Measured in frames 12-13 (frame 10 or 11 the box's map starts) on seeds 7 and 2, as
+    # generated and on 4 copies with +-1 grey level and +-1 depth unit on 2% of the pixels (all
+    # alike within 0.002): with the rule recall 0.95-0.97 (seed 7) and 0.98 (seed 2); without,
+    # 0.63-0.65 (seed 7) and 0.77-0.78 (seed 2).
+    for root in (face_moved_in_sequence, partial_view_jump_sequence):
+        result = run(root, [f"objects.grow_violation_share={violation_share}", "objects.grow_unmatched=false"],
+                     sequence=open_sequence(root, max_frames=14))
+        recalls = object_recalls(result, root, 1, result.reports[12:])
+        if violation_share:
+            assert min(recalls) > 0.9, (root.name, recalls)
+        else:
+            assert max(recalls) < 0.85, (root.name, recalls)
 
 
 @pytest.fixture(scope="module")
@@ -1378,18 +1390,21 @@ def test_grazing_face_where_the_old_face_was_joins_its_object(sample_like_sequen
 
 
 @pytest.mark.parametrize("unmatched", [False, True])
-def test_face_whose_features_match_nothing_static_is_grown(new_side_jump_sequence, unmatched):
-    """objects.grow_unmatched: from frame 11 the box's second face (24 keypoints, 3 matched,
-    none a static inlier, partly in space the static keyframes saw empty) joins the box's map
-    even with objects.grow_violation_share off; without either rule the static map takes it."""
-    root = new_side_jump_sequence
+def test_face_whose_features_match_nothing_static_is_grown(face_moved_in_sequence, unmatched):
+    """objects.grow_unmatched: from frame 12 a face of the box that jumped at frame 10 (none
+    of its features a static inlier, few matched at all, partly in space the static keyframes
+    saw empty) joins the box's map even with objects.grow_violation_share off; without either
+    rule the static map takes it."""
+    # Measured in frames 12-13 as in the test above (seed 7; on seed 2 the rule changes nothing):
+    # with the rule recall 0.95-0.97, without 0.63-0.65.
+    root = face_moved_in_sequence
     result = run(root, ["objects.grow_violation_share=0", f"objects.grow_unmatched={str(unmatched).lower()}"],
                  sequence=open_sequence(root, max_frames=14))
-    recalls = object_recalls(result, root, 1, result.reports[11:])
+    recalls = object_recalls(result, root, 1, result.reports[12:])
     if unmatched:
         assert min(recalls) > 0.9, recalls
     else:
-        assert max(recalls) < 0.7, recalls
+        assert max(recalls) < 0.85, recalls
 
 
 @pytest.fixture(scope="module")
@@ -1450,18 +1465,41 @@ def test_face_beside_a_jumped_object_stays_out_of_the_static_map(side_face_seque
     assert least <= recall <= most
 
 
-@pytest.mark.parametrize("from_surface, least, most", [("true", 0.9, 1.0), ("false", 0.0, 0.8)])
-def test_extent_spans_the_faces_without_3d_keypoints(side_face_sequence, from_surface, least, most):
-    """After the box's jump at frame 46, its side face has no keypoint with depth: only the
-    extent spanning the object's surface samples (objects.extent_from_surface) keeps giving it
-    to the box once the free-space views no longer see it move in (without: recall 0.74, and
-    the box starts a second map)."""
-    jump = int(motion_frames(side_face_sequence, 1)[4])
-    assert jump == 46
-    result = run(side_face_sequence, [f"objects.extent_from_surface={from_surface}"],
-                 sequence=open_sequence(side_face_sequence, max_frames=jump + 8))
-    recall = np.mean(object_recalls(result, side_face_sequence, 1, result.reports[jump + 1:]))
-    assert least <= recall <= most
+@pytest.fixture(scope="module")
+def hidden_face_sequences(tmp_path_factory):
+    """Seeds 3 and 4 of the jumping box at 320x240 (60 frames; the test uses the first 20): at
+    frame 10 the box jumps, and from frame 13 (seed 3) or 15 (seed 4) a face of it is inside
+    its extent only with the surface samples."""
+    roots = {}
+    for seed in (3, 4):
+        roots[seed] = tmp_path_factory.mktemp("objects") / f"hidden_face_{seed}"
+        generate_sequence(roots[seed], SynthOptions(frames=60, objects=1, motion="jump", width=WIDTH, height=HEIGHT,
+                                                    seed=seed))
+    return roots
+
+
+@pytest.mark.parametrize("from_surface", ["true", "false"])
+def test_extent_spans_the_faces_without_3d_keypoints(hidden_face_sequences, from_surface):
+    """Once the free-space views no longer see a face of the box move in, only the extent
+    spanning the object's surface samples (objects.extent_from_surface) keeps giving it to the
+    box: a face whose keypoints have no depth adds no landmark to the hull."""
+    # Two seeds, each with a margin. One seed alone sat at a knife edge: seed 1 after its jump
+    # at frame 46, without the samples, gave recall 0.74 and a second map, or 0.94 and one map
+    # (as on another machine with the same versions), as the RANSAC seed or +-1 grey level on
+    # 2% of the pixels decided. Measured on seeds 3 and 4, frames 11-19, on the sequences as
+    # generated and on 4 copies with +-1 grey level and +-1 depth unit on 2% of the pixels (all
+    # five alike within 0.025): with the samples recall 0.91-0.98 per frame (seed 3) and
+    # 0.97-0.99 (seed 4); without, 7 frames at 0.46-0.55 (seed 3) and 4 at 0.67 (seed 4).
+    for seed, root in hidden_face_sequences.items():
+        jump = first_motion_frame(root, 1)
+        assert jump == 10
+        result = run(root, [f"objects.extent_from_surface={from_surface}"],
+                     sequence=open_sequence(root, max_frames=jump + 10))
+        recalls = object_recalls(result, root, 1, result.reports[jump + 1:])
+        if from_surface == "true":
+            assert min(recalls) > 0.85, (seed, recalls)
+        else:  # the face lost for several frames
+            assert sum(recall < 0.75 for recall in recalls) >= 3, (seed, recalls)
 
 
 def test_surface_alignment_is_drawn_again_while_nothing_is_kept(monkeypatch):

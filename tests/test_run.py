@@ -49,6 +49,22 @@ def test_complete_run_files_agree(synth_sequence, tmp_path):
     assert len(timings) == 8 and "sift_ms" in timings[0]
 
 
+def test_summary_records_the_dependency_versions(synth_sequence, tmp_path):
+    """summary.json's ``dependencies``: the versions the imported modules report, so a figure
+    that moved between two machines can be traced to a dependency (constraints.txt)."""
+    import platform
+
+    import open3d
+    import scipy
+
+    sequence = open_sequence(synth_sequence, max_frames=2)
+    run_reconstruction(sequence, load_config(), tmp_path, dense_models=False)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["dependencies"] == {"python": platform.python_version(), "numpy": np.__version__,
+                                       "opencv": cv2.__version__, "open3d": open3d.__version__,
+                                       "scipy": scipy.__version__}
+
+
 def test_same_input_config_and_seed_give_identical_files(synth_sequence, tmp_path):
     sequence = open_sequence(synth_sequence, max_frames=8)
     for name in ("a", "b"):

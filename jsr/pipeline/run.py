@@ -7,7 +7,7 @@ done, and ``summary.json`` says whether the run completed.
 Layout written (``DIR``)::
 
     config.yaml             resolved configuration
-    summary.json            version, input, frames, fps, per-map counts, timings, status
+    summary.json            version, input, frames, fps, per-map counts, timings, status, dependency versions
     camera.tum              T_w_c of every tracked frame (world = first camera frame)
     landmarks.csv           per frame and map: keyframes, point and plane landmarks, tracked
     timings.csv             per frame: milliseconds per stage
@@ -70,6 +70,18 @@ def write_mask(path: Path, mask: np.ndarray) -> None:
     if not ok:  # pragma: no cover - OpenCV encodes any uint8 image
         raise RuntimeError(f"could not encode {path}")
     atomic_write_bytes(path, encoded.tobytes())
+
+
+def dependency_versions() -> dict[str, str]:
+    """Versions of Python and of the libraries whose numerics shape the results, as the
+    imported modules report them (``summary.json``'s ``dependencies``): a figure that moved
+    between two machines may be a dependency's doing (constraints.txt pins the tested ones)."""
+    import cv2
+    import open3d  # already loaded: write_tables wrote the map files with it
+    import scipy
+
+    return {"python": platform.python_version(), "numpy": np.__version__, "opencv": cv2.__version__,
+            "open3d": open3d.__version__, "scipy": scipy.__version__}
 
 
 class ResultsWriter:
@@ -175,6 +187,7 @@ class ResultsWriter:
             "objects_merged": {str(k): v for k, v in sorted(reconstructor.merged_into.items())},
             "timings": timing_summary,
             "platform": platform.platform(),
+            "dependencies": dependency_versions(),
         }
         write_json(self.out_dir / "summary.json", summary)
         return summary
