@@ -191,6 +191,7 @@ def reconstruct(
         None, "--init-object", help="PNG mask (non-zero = object) on the first frame: start object 1 there."),
     init_box: Optional[str] = typer.Option(
         None, "--init-box", help="Pixel box X0,Y0,X1,Y1 on the first frame: start object 1 there."),
+    render: bool = typer.Option(False, "--render", help="At the end, write PNG previews to OUT/plots (as 'jsr render')."),
 ) -> None:
     """Reconstruct a sequence: camera trajectory, static map, and a map and trajectory for
     every moving object, with their meshes."""
@@ -239,10 +240,30 @@ def reconstruct(
             console.print(f"[yellow]interrupted[/]: results of the frames done are in {escape(str(out_dir))}")
             raise typer.Exit(_interrupt_exit_code(stopped)) from None
         raise stopped
+    rendered = None
+    if render:
+        from jsr.export.render import render_results
+
+        with console.status("rendering previews", spinner="dots") if not quiet else _no_status():
+            rendered = render_results(out_dir)
     if json_summary:
-        _print_json(summary)
+        _print_json(summary if rendered is None else {**summary, "render": rendered})
     if not quiet:
         _print_run_summary(summary, out_dir)
+        if rendered is not None:
+            _print_rendered(rendered)
+
+
+def _no_status():
+    from contextlib import nullcontext
+
+    return nullcontext()
+
+
+def _print_rendered(rendered: dict) -> None:
+    console.print(f"rendered {len(rendered['files'])} previews in {rendered['seconds']:.1f} s:")
+    for path in rendered["files"]:
+        console.print(f"  {escape(path)}")
 
 
 def _print_summary_file(path: Path) -> None:
@@ -427,6 +448,11 @@ def evaluate(
         console.print(f"metrics written to {path}")
 
 
+def _figure(value) -> str:
+    """A figure with two decimals, '-' when undefined (None in the metrics)."""
+    return "-" if value is None else f"{value:.2f}"
+
+
 def _print_metrics(metrics: dict) -> None:
     camera = metrics.get("camera") or {}
     table = Table(title="Camera")
@@ -450,21 +476,22 @@ def _print_metrics(metrics: dict) -> None:
     objects = metrics.get("objects") or {}
     matches = objects.get("matches") or []
     if matches:
-        table = Table(title="Objects")
-        for column in ("estimated", "true", "frames", "t RMSE cm", "t median cm", "R RMSE deg", "tracked share",
-                       "further maps", "share, all maps"):
+        # Short headers, units in the caption: the table fits an 80-column terminal.
+        table = Table(title="Objects", caption="t: translation error, cm; R: rotation error, deg; tracked: share of "
+                      "the frames it is visible in; more maps: further maps of the same object")
+        for column in ("map", "true", "frames", "t RMSE", "t med", "R RMSE", "tracked", "more maps", "all maps"):
             table.add_column(column, justify="right")
         for match in matches:
             table.add_row(
                 str(match.get("estimated_id")),
                 str(match.get("true_id")),
                 str(match.get("frames")),
-                f"{match.get('translation_rmse_cm', float('nan')):.2f}",
-                f"{match.get('translation_median_cm', float('nan')):.2f}",
-                f"{match.get('rotation_rmse_deg', float('nan')):.2f}",
-                f"{match.get('tracked_share', float('nan')):.2f}",
+                _figure(match.get("translation_rmse_cm")),
+                _figure(match.get("translation_median_cm")),
+                _figure(match.get("rotation_rmse_deg")),
+                _figure(match.get("tracked_share")),
                 ", ".join(str(k) for k in match.get("further_maps", [])) or "-",
-                f"{match.get('tracked_share_all_maps', float('nan')):.2f}",
+                _figure(match.get("tracked_share_all_maps")),
             )
         console.print(table)
     masks = metrics.get("masks")
@@ -475,27 +502,63 @@ def _print_metrics(metrics: dict) -> None:
         )
 
 
-@app.command(epilog="Example:\n\n  jsr plot results/ --groundtruth sample_data/groundtruth.txt")
+@app.command(epilog="Examples:\n\n  jsr plot results/\n\n  jsr plot results/ --sequence sample_data/\n\n"
+             "  jsr plot results/ --groundtruth other/groundtruth.txt --out figures/")
 @_user_errors
 def plot(
     results: Path = typer.Argument(..., help="Results folder of 'jsr reconstruct'."),
-    groundtruth: Optional[Path] = typer.Option(None, "--groundtruth", help="TUM ground truth to draw beside."),
+    sequence: Optional[Path] = typer.Option(
+        None, "--sequence", help="Sequence folder with ground truth (default: the one the run read, if there)."),
+    groundtruth: Optional[Path] = typer.Option(None, "--groundtruth", help="TUM camera ground truth to draw beside."),
     out: Optional[Path] = typer.Option(None, "--out", help="Folder for the PNGs (default RESULTS/plots)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing."),
 ) -> None:
-    """Draw the paper's Figure 7 (keyframes and landmarks per map over frames) and the trajectory."""
-    from jsr.export.plots import plot_landmark_counts, plot_trajectory
+    """Draw the paper's Figure 7 (keyframes and landmarks per map over frames) and the camera
+    and object trajectories, with the ground truth aligned as 'jsr evaluate' aligns it."""
+    from jsr.errors import InputError
+    from jsr.export.plots import plot_results
 
     _configure_logging(0, quiet)
     out_dir = out or Path(results) / "plots"
     if out_dir.exists() and not out_dir.is_dir():
         _fail(f"--out {out_dir} is a file; give a folder")
-    written = [plot_landmark_counts(Path(results) / "landmarks.csv", out_dir / "landmarks.png")]
-    if (Path(results) / "camera.tum").is_file():
-        written.append(plot_trajectory(Path(results) / "camera.tum", out_dir / "trajectory.png", groundtruth))
+    if sequence is not None and not sequence.is_dir():
+        raise InputError(f"sequence folder {sequence} does not exist")
+    if groundtruth is not None and not groundtruth.is_file():
+        raise InputError(f"ground truth {groundtruth} does not exist")
+    written = plot_results(results, out_dir, sequence, groundtruth)
     if not quiet:
         for path in written:
             console.print(f"wrote {path}")
+
+
+@app.command(epilog="Examples:\n\n  jsr render results/\n\n"
+             "  jsr render results/ --frame 20 --views 4 --width 1024 --out previews/")
+@_user_errors
+def render(
+    results: Path = typer.Argument(..., help="Results folder of 'jsr reconstruct' (a complete run, with meshes)."),
+    frame: Optional[int] = typer.Option(
+        None, "--frame", help="Frame whose object poses the scene view shows (default: the last processed)."),
+    views: int = typer.Option(3, "--views", help="Number of static-map views, spread along the camera path."),
+    width: int = typer.Option(800, "--width", help="Image width in pixels (height: the sequence's aspect ratio)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Folder for the PNGs (default RESULTS/plots)."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing but errors."),
+    json_summary: bool = typer.Option(False, "--json", help="Print what was written as one line of JSON."),
+) -> None:
+    """Render PNG previews on the CPU (no display needed): the static mesh from viewpoints along
+    the camera path, the scene with every object placed at its pose in a frame, each in its own
+    tint (the paper's Figure 6 A), and each object model alone (Figure 6 D)."""
+    from jsr.export.render import render_results
+
+    _configure_logging(0, quiet)
+    if out is not None and out.exists() and not out.is_dir():
+        _fail(f"--out {out} is a file; give a folder")
+    with console.status("rendering previews", spinner="dots") if not quiet else _no_status():
+        rendered = render_results(results, out, frame=frame, views=views, width=width)
+    if json_summary:
+        _print_json(rendered)
+    if not quiet:
+        _print_rendered(rendered)
 
 
 @app.command("export-object", epilog="Examples:\n\n  jsr export-object results/ 1 --out box.ply\n\n"

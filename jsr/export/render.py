@@ -88,7 +88,7 @@ class ObjectModel:
         return self.poses[earlier[-1]] if len(earlier) else None
 
 
-def mesh_layer(path: Path, label: int) -> MeshLayer:
+def mesh_layer(path: Path, label: int, cull_back_faces: bool = True) -> MeshLayer:
     """A :class:`MeshLayer` of a PLY mesh (vertex colours grey when it has none)."""
     mesh = read_geometry_ply(path)
     triangles = np.asarray(getattr(mesh, "triangles", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
@@ -97,7 +97,7 @@ def mesh_layer(path: Path, label: int) -> MeshLayer:
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     colors = np.asarray(mesh.vertex_colors, dtype=np.float64) if mesh.has_vertex_colors() else np.full(
         (len(vertices), 3), 0.7)
-    return MeshLayer(vertices, triangles, colors, label=label).with_normals()
+    return MeshLayer(vertices, triangles, colors, label=label, cull_back_faces=cull_back_faces).with_normals()
 
 
 def _frame_timestamps(results_dir: Path) -> dict[int, float]:
@@ -137,8 +137,10 @@ def load_objects(results_dir: Path) -> list[ObjectModel]:
             continue
         keyframes = read_tum_trajectory(path / "keyframes.tum")[1] if (path / "keyframes.tum").is_file() else \
             np.zeros((0, 4, 4))
-        models.append(ObjectModel(object_id, mesh_layer(path / "mesh.ply", 1 + object_id), timestamps, poses,
-                                  keyframes))
+        # An object model is a shell open on the sides its keyframes never saw; seen from such a
+        # side, its inside still shows where and how large the object is: back faces are kept.
+        models.append(ObjectModel(object_id, mesh_layer(path / "mesh.ply", 1 + object_id, cull_back_faces=False),
+                                  timestamps, poses, keyframes))
     return sorted(models, key=lambda model: model.object_id)
 
 
@@ -227,9 +229,11 @@ def recorded_view(T_w_c: np.ndarray, intrinsics: dict) -> View:
 
 
 def _caption(image: np.ndarray, text: str) -> np.ndarray:
+    """``text`` on a white band at the top left (the mesh behind it may carry text of its own)."""
     image = np.ascontiguousarray(image)
-    cv2.putText(image, text, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 4, cv2.LINE_AA)
-    cv2.putText(image, text, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (20, 20, 20), 1, cv2.LINE_AA)
+    (text_width, text_height), baseline = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 1)
+    cv2.rectangle(image, (0, 0), (text_width + 20, text_height + baseline + 16), BACKGROUND, -1)
+    cv2.putText(image, text, (10, 8 + text_height), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (20, 20, 20), 1, cv2.LINE_AA)
     return image
 
 
