@@ -40,6 +40,7 @@ logger = logging.getLogger("jsr")
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports Ctrl-C
 EXIT_TERMINATED = 143  # 128 + SIGTERM
 EXIT_INTERNAL_ERROR = 1
+EXIT_SOME_FAILED = 3  # jsr batch: the batch ran, and some of its sequences failed
 
 
 class Terminated(KeyboardInterrupt):
@@ -136,19 +137,9 @@ def _print_json(data: dict) -> None:
 
 def _open_sequence(sequence: Path, config, camera, preset, start, max_frames, stride):
     """Open a sequence with the input settings of ``config`` (shared by the commands)."""
-    from jsr.io.dataset import open_sequence
+    from jsr.pipeline.run import open_configured_sequence
 
-    return open_sequence(
-        sequence,
-        camera_file=camera,
-        preset=preset,
-        max_time_difference=config.input.max_time_difference,
-        start=start,
-        max_frames=max_frames,
-        stride=stride,
-        min_depth=config.input.min_depth,
-        max_depth=config.input.max_depth,
-    )
+    return open_configured_sequence(sequence, config, camera, preset, start, max_frames, stride)
 
 
 def _fps_reporter(progress: Progress, task, started: float) -> Callable[[int, int], None]:
@@ -559,6 +550,111 @@ def render(
         _print_json(rendered)
     if not quiet:
         _print_rendered(rendered)
+
+
+@app.command(epilog="Examples:\n\n  jsr batch manifest.csv --out runs/\n\n"
+             "  jsr batch manifest.yaml --out runs/ --workers 2 --save-masks --render\n\n"
+             "  jsr batch manifest.csv --out runs/ --scheduler tcp://10.0.0.5:8786 -q --json\n\n"
+             "manifest.csv:\n\n  sequence,name,preset,start,max_frames,set\n\n"
+             "  data/kitchen,,,0,300,\n\n  data/office,office_fast,bonn,,,ransac.min_matches=12;seed=1")
+@_user_errors
+def batch(
+    manifest: Path = typer.Argument(..., help="CSV (header: sequence[,name,preset,start,max_frames,set]) or YAML."),
+    out: Path = typer.Option(..., "--out", "-o", help="Folder for one results folder per sequence and the summary."),
+    workers: Optional[int] = typer.Option(
+        None, "--workers", help="Worker processes of the local cluster (default: one per two cores)."),
+    scheduler: Optional[str] = typer.Option(
+        None, "--scheduler", help="Address of a running Dask scheduler to use instead (tcp://host:8786)."),
+    config_file: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config for every sequence."),
+    overrides: List[str] = typer.Option([], "--set", help="Override for every sequence: section.key=value."),
+    save_masks: bool = typer.Option(False, "--save-masks", help="Write masks/ in each results folder."),
+    render: bool = typer.Option(False, "--render", help="Write PNG previews in each results folder."),
+    force: bool = typer.Option(False, "--force", help="Redo sequences whose results are complete."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress or lines per sequence; errors only."),
+    json_summary: bool = typer.Option(False, "--json", help="Print the batch summary as one line of JSON."),
+    verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="More log output (-v info, -vv debug)."),
+) -> None:
+    """Reconstruct the sequences of a manifest, each as one task on Dask (a local cluster, or
+    an existing scheduler). Each gets the results folder 'jsr reconstruct' writes, evaluated
+    when it has ground truth; OUT/batch_summary.csv and .json are written as tasks finish. A
+    rerun skips sequences already complete with the same settings; a failing sequence is
+    recorded and the others go on. Exit code 3 when some sequence failed."""
+    from jsr.batch.manifest import read_manifest
+    from jsr.batch.run import run_batch
+    from jsr.batch.task import BatchSettings
+    from jsr.config import load_config
+
+    _configure_logging(verbose, quiet)
+    logging.getLogger("distributed").setLevel(logging.ERROR)  # its worker chatter is not the user's business
+    entries = read_manifest(manifest)
+    load_config(config_file, overrides)  # a typo in the options shared by all is reported before anything runs
+    settings = BatchSettings(config_file=config_file, overrides=tuple(overrides), save_masks=save_masks,
+                             render=render, force=force)
+    started = time.perf_counter()
+    with _progress(quiet) as progress:
+        task = progress.add_task("batch", total=len(entries), rate="")
+
+        def on_result(row: dict) -> None:
+            progress.console.print(_batch_line(row), soft_wrap=True)
+            for warning in row.get("warnings") or []:
+                progress.console.print(f"  [yellow]warning[/] {escape(warning)}", soft_wrap=True)
+            if row["status"] not in ("interrupted", "not started"):
+                progress.advance(task)
+            done = int(progress.tasks[0].completed)
+            progress.update(task, rate=f"{done / max(time.perf_counter() - started, 1e-9) * 3600:.1f} sequences/h")
+
+        stopped: KeyboardInterrupt | None = None
+        try:
+            summary = run_batch(entries, out, settings, workers=workers, scheduler=scheduler, on_result=on_result)
+        except KeyboardInterrupt as interrupt:
+            stopped = interrupt
+    if stopped is not None:
+        if json_summary:
+            _print_summary_file(out / "batch_summary.json")
+        counts = _batch_counts_on_disk(out)
+        console.print(f"[yellow]interrupted[/]: {counts}; summary in {escape(str(out / 'batch_summary.csv'))}")
+        raise typer.Exit(_interrupt_exit_code(stopped))
+    if json_summary:
+        _print_json(summary)
+    if not quiet:
+        _print_batch_summary(summary, out)
+    if summary["counts"].get("failed"):
+        raise typer.Exit(EXIT_SOME_FAILED)
+
+
+def _batch_line(row: dict) -> str:
+    """One line for a finished sequence."""
+    name, status = escape(row["name"]), row["status"]
+    if status == "failed":
+        return f"[red]failed[/] {name}: {escape(row.get('error', ''))}"
+    parts = [f"{row['frames']} frames" if row.get("frames") is not None else None,
+             f"{row['fps']:.2f} fps" if row.get("fps") and status != "skipped" else None,
+             f"ATE {row['ate_rmse_cm']:.2f} cm" if row.get("ate_rmse_cm") is not None else None,
+             f"{row['objects_matched']} of {row['objects_true']} objects matched" if row.get("objects_true") else None]
+    colour = {"complete": "green", "skipped": "cyan"}.get(status, "yellow")
+    return f"[{colour}]{status}[/] {name}: " + ", ".join(part for part in parts if part)
+
+
+def _batch_counts_on_disk(out: Path) -> str:
+    try:
+        counts = json.loads((out / "batch_summary.json").read_text())["counts"]
+    except (OSError, ValueError, KeyError):
+        return "no summary"
+    return ", ".join(f"{count} {status}" for status, count in counts.items())
+
+
+def _print_batch_summary(summary: dict, out: Path) -> None:
+    table = Table(title=f"jsr batch: {len(summary['sequences'])} sequences")
+    for column in ("sequence", "status", "frames", "fps", "ATE cm", "objects", "t cm", "R deg"):
+        table.add_column(column, justify="left" if column in ("sequence", "status") else "right")
+    for row in summary["sequences"]:
+        objects = f"{row['objects_matched']}/{row['objects_true']}" if row.get("objects_true") is not None else "-"
+        table.add_row(escape(row["name"]), row["status"], str(row.get("frames") or "-"), _figure(row.get("fps")),
+                      _figure(row.get("ate_rmse_cm")), objects, _figure(row.get("object_t_rmse_cm_max")),
+                      _figure(row.get("object_r_rmse_deg_max")))
+    console.print(table)
+    counts = ", ".join(f"{count} {status}" for status, count in summary["counts"].items())
+    console.print(f"{counts}; summary in {escape(str(out / 'batch_summary.csv'))} and .json")
 
 
 @app.command("export-object", epilog="Examples:\n\n  jsr export-object results/ 1 --out box.ply\n\n"

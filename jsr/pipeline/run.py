@@ -42,7 +42,7 @@ import numpy as np
 from jsr import __version__
 from jsr.config import Config, config_to_yaml
 from jsr.io.atomic import atomic_write_bytes, atomic_write_text
-from jsr.io.dataset import RGBDSequence
+from jsr.io.dataset import RGBDSequence, open_sequence
 from jsr.io.trajectory import write_tum_trajectory
 from jsr.export.meshes import write_dense_models
 from jsr.io.writers import write_csv, write_json, write_point_cloud_ply
@@ -178,6 +178,23 @@ class ResultsWriter:
         }
         write_json(self.out_dir / "summary.json", summary)
         return summary
+
+
+def open_configured_sequence(path: Path, config: Config, camera_file: Path | None = None, preset: str | None = None,
+                             start: int = 0, max_frames: int | None = None, stride: int = 1) -> RGBDSequence:
+    """Open a sequence with the input settings of ``config`` (timestamp association, depth
+    range), as ``jsr reconstruct`` and ``jsr batch`` do."""
+    return open_sequence(
+        path,
+        camera_file=camera_file,
+        preset=preset,
+        max_time_difference=config.input.max_time_difference,
+        start=start,
+        max_frames=max_frames,
+        stride=stride,
+        min_depth=config.input.min_depth,
+        max_depth=config.input.max_depth,
+    )
 
 
 @contextmanager
