@@ -183,7 +183,7 @@ def spread_along_trajectory(poses: np.ndarray, count: int, metres_per_radian: fl
     if along[-1] <= 0:
         return [len(poses) // 2]
     wanted = (np.arange(count) + 0.5) / count * along[-1]
-    chosen = np.searchsorted(along, wanted).clip(0, len(poses) - 1)
+    chosen = np.argmin(np.abs(along[None, :] - wanted[:, None]), axis=1)  # the pose nearest each mark
     return sorted(set(int(i) for i in chosen))
 
 
