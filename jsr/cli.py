@@ -595,9 +595,10 @@ def batch(
         task = progress.add_task("batch", total=len(entries), rate="")
 
         def on_result(row: dict) -> None:
-            progress.console.print(_batch_line(row), soft_wrap=True)
-            for warning in row.get("warnings") or []:
-                progress.console.print(f"  [yellow]warning[/] {escape(warning)}", soft_wrap=True)
+            if not quiet:
+                progress.console.print(_batch_line(row), soft_wrap=True)
+                for warning in row.get("warnings") or []:
+                    progress.console.print(f"  [yellow]warning[/] {escape(warning)}", soft_wrap=True)
             if row["status"] not in ("interrupted", "not started"):
                 progress.advance(task)
             done = int(progress.tasks[0].completed)
