@@ -471,3 +471,16 @@ def test_further_maps_of_one_object_are_pooled(tmp_path):
     assert match["tracked_share_all_maps"] == pytest.approx(15 / 15)
     assert objects_section["unmatched_estimated"] == [2]
     assert [entry["estimated_id"] for entry in objects_section["further_maps"]] == [3]
+
+
+def test_evaluate_tables_fit_80_columns(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    import jsr.cli
+
+    sequence, results, _ = make_run(tmp_path)
+    monkeypatch.setattr(jsr.cli.console, "width", 80)
+    result = CliRunner().invoke(jsr.cli.app, ["evaluate", str(results), str(sequence)])
+    assert result.exit_code == 0, result.output
+    assert "Objects" in result.output and "…" not in result.output
+    assert max(len(line) for line in result.output.splitlines()) <= 80
