@@ -134,7 +134,7 @@ def run_batch(
     KeyboardInterrupt is raised again."""
     from distributed import as_completed
 
-    out_dir = Path(out_dir)
+    out_dir = Path(out_dir).absolute()  # workers elsewhere (--scheduler) write to the same place
     if out_dir.exists() and not out_dir.is_dir():
         raise OutputError(f"output path {out_dir} is a file; give a folder")
     if workers is not None and scheduler is not None:
