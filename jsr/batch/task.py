@@ -98,7 +98,7 @@ class StopSignal:
                 raise BatchStopped("the batch was stopped")
 
 
-def up_to_date(results: Path, sequence, config, save_masks: bool) -> tuple[bool, str]:
+def up_to_date(results: Path, sequence, config, save_masks: bool, render: bool = False) -> tuple[bool, str]:
     """Whether ``results`` holds a complete run of ``sequence`` (an opened
     :class:`~jsr.io.dataset.RGBDSequence`) with ``config``; and if not, why."""
     from jsr.config import config_to_yaml
@@ -125,6 +125,8 @@ def up_to_date(results: Path, sequence, config, save_masks: bool) -> tuple[bool,
         return False, "no readable landmarks.csv"
     if save_masks and not (results / "masks").is_dir():
         return False, "the earlier run saved no masks"
+    if render and not (results / "plots" / "static_view_1.png").is_file():
+        return False, "the earlier run rendered no previews"
     return True, "complete with the same settings"
 
 
@@ -202,7 +204,7 @@ def _run_entry(entry: BatchEntry, out_dir: Path, settings: BatchSettings, stop_e
                                             max_frames=entry.max_frames)
         check_first_frame(sequence)
         done, why = (False, "--force") if settings.force else up_to_date(results, sequence, config,
-                                                                         settings.save_masks)
+                                                                         settings.save_masks, settings.render)
         if done:
             logger.info("%s: skipped (%s)", entry.name, why)
             summary = json.loads((results / "summary.json").read_text())
