@@ -21,10 +21,12 @@ from rich.console import Console
 from rich.logging import RichHandler
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-from rich.table import Column, Table
+from rich.table import Column
 
 from jsr import __version__
 from jsr.errors import JsrError
+from jsr.summaries import (batch_counts, batch_line, batch_report, metrics_report, rendered_report,
+                           run_summary)
 
 app = typer.Typer(
     name="jsr",
@@ -240,9 +242,14 @@ def reconstruct(
     if json_summary:
         _print_json(summary if rendered is None else {**summary, "render": rendered})
     if not quiet:
-        _print_run_summary(summary, out_dir)
+        _show(run_summary(summary, out_dir))
         if rendered is not None:
-            _print_rendered(rendered)
+            _show(rendered_report(rendered))
+
+
+def _show(renderables: list) -> None:
+    for item in renderables:
+        console.print(item)
 
 
 def _no_status():
@@ -251,10 +258,12 @@ def _no_status():
     return nullcontext()
 
 
-def _print_rendered(rendered: dict) -> None:
-    console.print(f"rendered {len(rendered['files'])} previews in {rendered['seconds']:.1f} s:")
-    for path in rendered["files"]:
-        console.print(f"  {escape(path)}")
+def _read_json(path: Path) -> dict:
+    """A JSON file the command wrote, or {} when it is not there or not readable."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
 
 
 def _print_summary_file(path: Path) -> None:
@@ -307,22 +316,6 @@ def _initial_object_mask(mask_file: Optional[Path], box: Optional[str], shape: t
     if not np.any(image > 0):
         raise InputError(f"initial object mask {mask_file} has no non-zero pixel")
     return image > 0
-
-
-def _print_run_summary(summary: dict, out_dir: Path) -> None:
-    table = Table(title=f"jsr reconstruct: {summary['frames_processed']} frames, {summary['fps']:.2f} fps")
-    for column in ("map", "keyframes", "point landmarks", "plane landmarks"):
-        table.add_column(column, justify="right" if column != "map" else "left")
-    for name, counts in summary["maps"].items():
-        table.add_row(name, str(counts["keyframes"]), str(counts["point_landmarks"]), str(counts["plane_landmarks"]))
-    console.print(table)
-    for item in summary.get("objects", []):
-        console.print(f"object {item['id']}: detected at frame {item['created_at_frame']}, "
-                      f"tracked in {item['frames_tracked']} frames")
-    console.print(
-        f"tracked {summary['frames_tracked']} of {summary['frames_processed']} frames "
-        f"({summary['frames_lost']} lost, {summary['relocalisations']} relocalisations); results in {out_dir}"
-    )
 
 
 @app.command(
@@ -435,62 +428,8 @@ def evaluate(
     if json_summary:
         _print_json(metrics)
     if not quiet:
-        _print_metrics(metrics)
+        _show(metrics_report(metrics))
         console.print(f"metrics written to {path}")
-
-
-def _figure(value) -> str:
-    """A figure with two decimals, '-' when undefined (None in the metrics)."""
-    return "-" if value is None else f"{value:.2f}"
-
-
-def _print_metrics(metrics: dict) -> None:
-    camera = metrics.get("camera") or {}
-    table = Table(title="Camera")
-    table.add_column("metric")
-    table.add_column("value", justify="right")
-    ate, rpe = camera.get("ate") or {}, camera.get("rpe") or {}
-    for label, value, unit in (
-        ("ATE RMSE", ate.get("rmse"), "cm"),
-        ("ATE median", ate.get("median"), "cm"),
-        ("ATE max", ate.get("max"), "cm"),
-        ("RPE translation RMSE", rpe.get("translation_rmse"), "cm"),
-        ("RPE rotation RMSE", rpe.get("rotation_rmse"), "deg"),
-    ):
-        if value is not None:
-            shown = value * 100.0 if unit == "cm" else value
-            table.add_row(label, f"{shown:.3f} {unit}")
-    for key in ("frames_associated", "gt_frames_without_estimate"):
-        if key in camera:
-            table.add_row(key.replace("_", " "), str(camera[key]))
-    console.print(table)
-    objects = metrics.get("objects") or {}
-    matches = objects.get("matches") or []
-    if matches:
-        # Short headers, units in the caption: the table fits an 80-column terminal.
-        table = Table(title="Objects", caption="t: translation error, cm; R: rotation error, deg; tracked: share of "
-                      "the frames it is visible in; more maps: further maps of the same object")
-        for column in ("map", "true", "frames", "t RMSE", "t med", "R RMSE", "tracked", "more maps", "all maps"):
-            table.add_column(column, justify="right")
-        for match in matches:
-            table.add_row(
-                str(match.get("estimated_id")),
-                str(match.get("true_id")),
-                str(match.get("frames")),
-                _figure(match.get("translation_rmse_cm")),
-                _figure(match.get("translation_median_cm")),
-                _figure(match.get("rotation_rmse_deg")),
-                _figure(match.get("tracked_share")),
-                ", ".join(str(k) for k in match.get("further_maps", [])) or "-",
-                _figure(match.get("tracked_share_all_maps")),
-            )
-        console.print(table)
-    masks = metrics.get("masks")
-    if masks:
-        console.print(
-            f"masks: precision {masks.get('precision', float('nan')):.3f}, "
-            f"recall {masks.get('recall', float('nan')):.3f} over {masks.get('frames', 0)} frames"
-        )
 
 
 @app.command(epilog="Examples:\n\n  jsr plot results/\n\n  jsr plot results/ --sequence sample_data/\n\n"
@@ -549,7 +488,7 @@ def render(
     if json_summary:
         _print_json(rendered)
     if not quiet:
-        _print_rendered(rendered)
+        _show(rendered_report(rendered))
 
 
 @app.command(epilog="Examples:\n\n  jsr batch manifest.csv --out runs/\n\n"
@@ -596,7 +535,7 @@ def batch(
 
         def on_result(row: dict) -> None:
             if not quiet:
-                progress.console.print(_batch_line(row), soft_wrap=True)
+                progress.console.print(batch_line(row), soft_wrap=True)
                 for warning in row.get("warnings") or []:
                     progress.console.print(f"  [yellow]warning[/] {escape(warning)}", soft_wrap=True)
             if row["status"] not in ("interrupted", "not started"):
@@ -612,50 +551,15 @@ def batch(
     if stopped is not None:
         if json_summary:
             _print_summary_file(out / "batch_summary.json")
-        counts = _batch_counts_on_disk(out)
+        counts = batch_counts(_read_json(out / "batch_summary.json"))
         console.print(f"[yellow]interrupted[/]: {counts}; summary in {escape(str(out / 'batch_summary.csv'))}")
         raise typer.Exit(_interrupt_exit_code(stopped))
     if json_summary:
         _print_json(summary)
     if not quiet:
-        _print_batch_summary(summary, out)
+        _show(batch_report(summary, out))
     if summary["counts"].get("failed"):
         raise typer.Exit(EXIT_SOME_FAILED)
-
-
-def _batch_line(row: dict) -> str:
-    """One line for a finished sequence."""
-    name, status = escape(row["name"]), row["status"]
-    if status == "failed":
-        return f"[red]failed[/] {name}: {escape(row.get('error', ''))}"
-    parts = [f"{row['frames']} frames" if row.get("frames") is not None else None,
-             f"{row['fps']:.2f} fps" if row.get("fps") and status != "skipped" else None,
-             f"ATE {row['ate_rmse_cm']:.2f} cm" if row.get("ate_rmse_cm") is not None else None,
-             f"{row['objects_matched']} of {row['objects_true']} objects matched" if row.get("objects_true") else None]
-    colour = {"complete": "green", "skipped": "cyan"}.get(status, "yellow")
-    return f"[{colour}]{status}[/] {name}: " + ", ".join(part for part in parts if part)
-
-
-def _batch_counts_on_disk(out: Path) -> str:
-    try:
-        counts = json.loads((out / "batch_summary.json").read_text())["counts"]
-    except (OSError, ValueError, KeyError):
-        return "no summary"
-    return ", ".join(f"{count} {status}" for status, count in counts.items())
-
-
-def _print_batch_summary(summary: dict, out: Path) -> None:
-    table = Table(title=f"jsr batch: {len(summary['sequences'])} sequences")
-    for column in ("sequence", "status", "frames", "fps", "ATE cm", "objects", "t cm", "R deg"):
-        table.add_column(column, justify="left" if column in ("sequence", "status") else "right")
-    for row in summary["sequences"]:
-        objects = f"{row['objects_matched']}/{row['objects_true']}" if row.get("objects_true") is not None else "-"
-        table.add_row(escape(row["name"]), row["status"], str(row.get("frames") or "-"), _figure(row.get("fps")),
-                      _figure(row.get("ate_rmse_cm")), objects, _figure(row.get("object_t_rmse_cm_max")),
-                      _figure(row.get("object_r_rmse_deg_max")))
-    console.print(table)
-    counts = ", ".join(f"{count} {status}" for status, count in summary["counts"].items())
-    console.print(f"{counts}; summary in {escape(str(out / 'batch_summary.csv'))} and .json")
 
 
 @app.command("export-object", epilog="Examples:\n\n  jsr export-object results/ 1 --out box.ply\n\n"

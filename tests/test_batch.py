@@ -150,7 +150,7 @@ def test_stopping_a_batch_interrupts_running_runs_and_says_so(sequences, tmp_pat
             raise KeyboardInterrupt
 
     # two threads: "second" starts beside "first", which fails at once and so stops the batch
-    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster:
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=":0") as cluster:
         with pytest.raises(KeyboardInterrupt):
             run_batch(entries, tmp_path / "out", BatchSettings(overrides=("output.mesh_voxel_size=0.05",)),
                       scheduler=cluster.scheduler_address,

@@ -15,7 +15,7 @@ from jsr.export.render import (ObjectModel, load_objects, mesh_layer, placed, pr
                                render_results, render_scene, spread_along_trajectory)
 from jsr.geometry import make_transform, rotation_about_axis
 from jsr.io.trajectory import write_tum_trajectory
-from jsr.io.writers import make_point_cloud, write_csv, write_geometry_ply, write_json
+from jsr.io.writers import write_csv, write_geometry_ply, write_json
 
 INTRINSICS = {"fx": 200.0, "fy": 200.0, "cx": 159.5, "cy": 119.5, "width": 320, "height": 240, "depth_scale": 5000.0}
 ROOM_COLOUR = (0.7, 0.45, 0.3)  # brown: far from every object tint

@@ -113,7 +113,8 @@ def _client(workers: int | None, scheduler: str | None, entries: int):
     workers = workers or default_workers(entries)
     # A task whose worker died is not retried: it is recorded as failed, as any other failure.
     with dask.config.set({"distributed.scheduler.allowed-failures": 0}), _sigint_ignored_by_children():
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+        # ":0": any free port for the scheduler's HTTP server, so batches side by side do not collide
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
                                memory_limit=0, silence_logs=logging.CRITICAL)
     return Client(cluster), cluster
 
