@@ -198,6 +198,19 @@ def open_configured_sequence(path: Path, config: Config, camera_file: Path | Non
 
 
 @contextmanager
+def single_threaded_blas():
+    """Within the block, the BLAS libraries numpy and SciPy loaded use one thread (process-wide;
+    the previous limits come back after). The reconstruction's own threads (front-end, bundle
+    adjustment) keep both cores busy; measured on kitchen_box120 (120 frames, two runs side by
+    side on 2 cores), one BLAS thread took 426 s against 468 s with two."""
+    import scipy.linalg  # noqa: F401  (loads SciPy's BLAS, so that the limit reaches it too)
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
+@contextmanager
 def interrupts_deferred():
     """Within the block, SIGINT (Ctrl-C) and SIGTERM are noted and logged, not raised: the
     results of the frames done are being written, and a second Ctrl-C must not leave them
@@ -238,7 +251,19 @@ def run_reconstruction(
     (also written to ``summary.json``). A KeyboardInterrupt or any exception is re-raised after
     the results of the frames done have been written; further Ctrl-C or SIGTERM while they are
     written are ignored (:func:`interrupts_deferred`).
+
+    BLAS runs on one thread meanwhile (:func:`single_threaded_blas`): the sums of a large
+    product are split among its threads, so results changed in their last digits with the
+    number of cores (a kitchen_box120 run differed by 1e-7 m from frame 43 on between 2 BLAS
+    threads and 1, as a Dask worker has), and a run must give the same files wherever it runs.
     """
+    with single_threaded_blas():
+        return _run_reconstruction(sequence, config, out_dir, on_frame, flush_every, dense_models, save_masks,
+                                   init_object_mask)
+
+
+def _run_reconstruction(sequence, config, out_dir, on_frame, flush_every, dense_models, save_masks,
+                        init_object_mask) -> dict:
     writer = ResultsWriter(out_dir, sequence, config)
     writer.write_config()
     reconstructor = Reconstructor(config, sequence.intrinsics, init_object_mask=init_object_mask)
