@@ -149,7 +149,14 @@ def run_batch(
     summary = BatchSummary(out_dir, entries, settings, scheduler or f"local, {workers or default_workers(len(entries))} "
                            "worker process(es)")
     summary.write()
-    client, cluster = _client(workers, scheduler, len(entries))
+    try:
+        client, cluster = _client(workers, scheduler, len(entries))
+    except KeyboardInterrupt:  # before any task ran
+        summary.status = "interrupted"
+        for row in summary.rows.values():
+            row.update(status="not started", error="the batch was stopped")
+        summary.write()
+        raise
     stop_name = f"jsr-batch-stop-{uuid.uuid4().hex}"
     futures = {}
     try:

@@ -216,9 +216,7 @@ def _run_entry(entry: BatchEntry, out_dir: Path, settings: BatchSettings, stop_e
                                          save_masks=settings.save_masks)
             row["status"] = "complete"
             if settings.render:
-                from jsr.export.render import render_results
-
-                render_results(results)
+                row.update(_render(results))
         row.update(_run_figures(summary))
         if (Path(entry.sequence) / "groundtruth.txt").is_file():
             row.update(_evaluation(results, entry.sequence))
@@ -231,6 +229,16 @@ def _run_entry(entry: BatchEntry, out_dir: Path, settings: BatchSettings, stop_e
         logger.debug("%s: traceback", entry.name, exc_info=True)
         row["error"] = f"internal error ({type(error).__name__}: {error})"
     return row
+
+
+def _render(results: Path) -> dict:
+    from jsr.export.render import render_results
+
+    try:
+        render_results(results)
+        return {}
+    except JsrError as error:  # the run stands; it has no previews (e.g. no mesh: nothing was fused)
+        return {"render_error": str(error)}
 
 
 def _evaluation(results: Path, sequence: Path) -> dict:
