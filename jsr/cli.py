@@ -493,7 +493,7 @@ def render(
 
 @app.command(epilog="Examples:\n\n  jsr batch manifest.csv --out runs/\n\n"
              "  jsr batch manifest.yaml --out runs/ --workers 2 --save-masks --render\n\n"
-             "  jsr batch manifest.csv --out runs/ --scheduler tcp://10.0.0.5:8786 -q --json\n\n"
+             "  jsr batch manifest.csv --out runs/ --scheduler tcp://scheduler-host:8786 -q --json\n\n"
              "manifest.csv:\n\n  sequence,name,preset,start,max_frames,set\n\n"
              "  data/kitchen,,,0,300,\n\n  data/office,office_fast,bonn,,,ransac.min_matches=12;seed=1")
 @_user_errors
