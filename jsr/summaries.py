@@ -108,7 +108,9 @@ def batch_report(summary: dict, out: Path) -> list:
     """The batch summary: one table row per sequence, and the counts."""
     table = Table(title=f"jsr batch: {len(summary['sequences'])} sequences")
     for column in ("sequence", "status", "frames", "fps", "ATE cm", "objects", "t cm", "R deg"):
-        table.add_column(column, justify="left" if column in ("sequence", "status") else "right")
+        # a long name folds onto a second line rather than losing its end in 80 columns
+        table.add_column(column, justify="left" if column in ("sequence", "status") else "right",
+                         overflow="fold" if column == "sequence" else "ellipsis")
     for row in summary["sequences"]:
         objects = f"{row['objects_matched']}/{row['objects_true']}" if row.get("objects_true") is not None else "-"
         table.add_row(escape(row["name"]), row["status"], str(row.get("frames") or "-"), figure(row.get("fps")),

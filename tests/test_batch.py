@@ -2,6 +2,7 @@
 and a stop."""
 
 import hashlib
+import io
 import json
 from pathlib import Path
 
@@ -182,3 +183,19 @@ def test_batch_refuses_workers_with_a_scheduler_and_a_bad_manifest(tmp_path):
     assert result.exit_code == 2 and result.output.startswith("error: manifest")
     result = runner.invoke(app, ["batch", str(tmp_path / "m.csv"), "--out", str(tmp_path / "o"), "--set", "nope=1"])
     assert result.exit_code == 2 and "nope" in result.output
+
+
+def test_batch_table_keeps_long_names_within_80_columns():
+    from rich.console import Console
+
+    from jsr.summaries import batch_report
+
+    rows = [{"name": "bonn_crowd_people_second_half", "status": "complete", "frames": 328, "fps": 0.5,
+             "ate_rmse_cm": 12.3, "objects_true": 1, "objects_matched": 1, "object_t_rmse_cm_max": 1.5,
+             "object_r_rmse_deg_max": 2.5}]
+    console = Console(width=80, record=True, file=io.StringIO())
+    for item in batch_report({"sequences": rows, "counts": {"complete": 1}}, Path("runs")):
+        console.print(item)
+    text = console.export_text()
+    assert "…" not in text and max(len(line) for line in text.splitlines()) <= 80
+    assert "bonn_crowd" in text and "half" in text  # folded onto two lines, whole
