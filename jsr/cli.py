@@ -536,7 +536,8 @@ def batch(
         def on_result(row: dict) -> None:
             if not quiet:
                 progress.console.print(batch_line(row), soft_wrap=True)
-                for warning in row.get("warnings") or []:
+                notes = [row[key] for key in ("render_error", "evaluation_error") if row.get(key)]
+                for warning in [*(row.get("warnings") or []), *notes]:
                     progress.console.print(f"  [yellow]warning[/] {escape(warning)}", soft_wrap=True)
             if row["status"] not in ("interrupted", "not started"):
                 progress.advance(task)

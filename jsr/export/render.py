@@ -108,6 +108,13 @@ def _frame_timestamps(results_dir: Path) -> dict[int, float]:
         raise InputError(f"{results_dir / 'landmarks.csv'} is not a jsr landmarks.csv; re-run jsr reconstruct") from None
 
 
+def _run_status(results_dir: Path) -> str | None:
+    try:
+        return json.loads((results_dir / "summary.json").read_text()).get("status")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
 def _intrinsics(results_dir: Path) -> dict:
     path = results_dir / "summary.json"
     try:
@@ -335,6 +342,9 @@ def render_results(
     out_dir = Path(out_dir) if out_dir is not None else results_dir / "plots"
     intrinsics = _intrinsics(results_dir)
     if not (results_dir / "static" / "mesh.ply").is_file():
+        if _run_status(results_dir) == "complete":
+            raise InputError(f"{results_dir} has no static/mesh.ply: its keyframes fused into an empty model (too "
+                             "few keyframes or too little valid depth); there is nothing to draw")
         raise InputError(f"{results_dir} has no static/mesh.ply: the meshes are written at the end of a complete run "
                          "(re-run jsr reconstruct to the end)")
     static = mesh_layer(results_dir / "static" / "mesh.ply", STATIC_LABEL)
