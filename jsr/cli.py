@@ -199,7 +199,7 @@ def reconstruct(
     init_mask = _initial_object_mask(init_object, init_box, first.depth.shape)
     out_dir = prepare_output_folder(out, overwrite)
 
-    from jsr.pipeline.run import run_reconstruction
+    from jsr.pipeline.run import run_reconstruction, single_threaded_blas
 
     started = time.perf_counter()
     with _progress(quiet) as progress:
@@ -222,8 +222,9 @@ def reconstruct(
 
         stopped: BaseException | None = None
         try:
-            summary = run_reconstruction(data, config, out_dir, on_frame=on_frame, save_masks=save_masks,
-                                         init_object_mask=init_mask)
+            with single_threaded_blas():  # the same files as in a jsr batch worker, on any core count
+                summary = run_reconstruction(data, config, out_dir, on_frame=on_frame, save_masks=save_masks,
+                                             init_object_mask=init_mask)
         except BaseException as error:  # reported below, once the progress bar has drawn its last line
             stopped = error
     if stopped is not None:

@@ -199,10 +199,17 @@ def open_configured_sequence(path: Path, config: Config, camera_file: Path | Non
 
 @contextmanager
 def single_threaded_blas():
-    """Within the block, the BLAS libraries numpy and SciPy loaded use one thread (process-wide;
-    the previous limits come back after). The reconstruction's own threads (front-end, bundle
-    adjustment) keep both cores busy; measured on kitchen_box120 (120 frames, two runs side by
-    side on 2 cores), one BLAS thread took 426 s against 468 s with two."""
+    """Within the block, the BLAS libraries numpy and SciPy loaded use one thread (the limit is
+    process-wide; enter and leave the block in one thread, and not in several threads at once:
+    OpenBLAS restores a limit reliably only from the thread that set it).
+
+    A large product's sums are split among BLAS threads, so a reconstruction's results change
+    in their last digits with the thread count: kitchen_box120 (120 frames) differed by 1e-7 m
+    from frame 43 on between 2 threads and 1. ``jsr reconstruct`` runs inside this block, as
+    Dask's worker processes run with ``OPENBLAS_NUM_THREADS=1``, so that a sequence gives the
+    same files in ``jsr batch`` as on the command line, on any number of cores. The
+    reconstruction's own threads keep the cores busy: side by side on 2 cores, kitchen_box120
+    took 426 s with one BLAS thread against 468 s with two."""
     import scipy.linalg  # noqa: F401  (loads SciPy's BLAS, so that the limit reaches it too)
     from threadpoolctl import threadpool_limits
 
@@ -250,20 +257,9 @@ def run_reconstruction(
     object map 1 on the first frame (see :class:`Reconstructor`). Returns the summary dict
     (also written to ``summary.json``). A KeyboardInterrupt or any exception is re-raised after
     the results of the frames done have been written; further Ctrl-C or SIGTERM while they are
-    written are ignored (:func:`interrupts_deferred`).
-
-    BLAS runs on one thread meanwhile (:func:`single_threaded_blas`): the sums of a large
-    product are split among its threads, so results changed in their last digits with the
-    number of cores (a kitchen_box120 run differed by 1e-7 m from frame 43 on between 2 BLAS
-    threads and 1, as a Dask worker has), and a run must give the same files wherever it runs.
+    written are ignored (:func:`interrupts_deferred`). For results that do not depend on the
+    number of cores, run it inside :func:`single_threaded_blas` (``jsr reconstruct`` does).
     """
-    with single_threaded_blas():
-        return _run_reconstruction(sequence, config, out_dir, on_frame, flush_every, dense_models, save_masks,
-                                   init_object_mask)
-
-
-def _run_reconstruction(sequence, config, out_dir, on_frame, flush_every, dense_models, save_masks,
-                        init_object_mask) -> dict:
     writer = ResultsWriter(out_dir, sequence, config)
     writer.write_config()
     reconstructor = Reconstructor(config, sequence.intrinsics, init_object_mask=init_object_mask)
