@@ -21,10 +21,12 @@ from rich.console import Console
 from rich.logging import RichHandler
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-from rich.table import Column, Table
+from rich.table import Column
 
 from jsr import __version__
 from jsr.errors import JsrError
+from jsr.summaries import (batch_counts, batch_line, batch_report, metrics_report, rendered_report,
+                           run_summary)
 
 app = typer.Typer(
     name="jsr",
@@ -40,6 +42,7 @@ logger = logging.getLogger("jsr")
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports Ctrl-C
 EXIT_TERMINATED = 143  # 128 + SIGTERM
 EXIT_INTERNAL_ERROR = 1
+EXIT_SOME_FAILED = 3  # jsr batch: the batch ran, and some of its sequences failed
 
 
 class Terminated(KeyboardInterrupt):
@@ -136,19 +139,9 @@ def _print_json(data: dict) -> None:
 
 def _open_sequence(sequence: Path, config, camera, preset, start, max_frames, stride):
     """Open a sequence with the input settings of ``config`` (shared by the commands)."""
-    from jsr.io.dataset import open_sequence
+    from jsr.pipeline.run import open_configured_sequence
 
-    return open_sequence(
-        sequence,
-        camera_file=camera,
-        preset=preset,
-        max_time_difference=config.input.max_time_difference,
-        start=start,
-        max_frames=max_frames,
-        stride=stride,
-        min_depth=config.input.min_depth,
-        max_depth=config.input.max_depth,
-    )
+    return open_configured_sequence(sequence, config, camera, preset, start, max_frames, stride)
 
 
 def _fps_reporter(progress: Progress, task, started: float) -> Callable[[int, int], None]:
@@ -191,6 +184,7 @@ def reconstruct(
         None, "--init-object", help="PNG mask (non-zero = object) on the first frame: start object 1 there."),
     init_box: Optional[str] = typer.Option(
         None, "--init-box", help="Pixel box X0,Y0,X1,Y1 on the first frame: start object 1 there."),
+    render: bool = typer.Option(False, "--render", help="At the end, write PNG previews to OUT/plots (as 'jsr render')."),
 ) -> None:
     """Reconstruct a sequence: camera trajectory, static map, and a map and trajectory for
     every moving object, with their meshes."""
@@ -205,7 +199,7 @@ def reconstruct(
     init_mask = _initial_object_mask(init_object, init_box, first.depth.shape)
     out_dir = prepare_output_folder(out, overwrite)
 
-    from jsr.pipeline.run import run_reconstruction
+    from jsr.pipeline.run import run_reconstruction, single_threaded_blas
 
     started = time.perf_counter()
     with _progress(quiet) as progress:
@@ -228,8 +222,9 @@ def reconstruct(
 
         stopped: BaseException | None = None
         try:
-            summary = run_reconstruction(data, config, out_dir, on_frame=on_frame, save_masks=save_masks,
-                                         init_object_mask=init_mask)
+            with single_threaded_blas():  # the same files as in a jsr batch worker, on any core count
+                summary = run_reconstruction(data, config, out_dir, on_frame=on_frame, save_masks=save_masks,
+                                             init_object_mask=init_mask)
         except BaseException as error:  # reported below, once the progress bar has drawn its last line
             stopped = error
     if stopped is not None:
@@ -239,10 +234,37 @@ def reconstruct(
             console.print(f"[yellow]interrupted[/]: results of the frames done are in {escape(str(out_dir))}")
             raise typer.Exit(_interrupt_exit_code(stopped)) from None
         raise stopped
+    rendered = None
+    if render:
+        from jsr.export.render import render_results
+
+        with console.status("rendering previews", spinner="dots") if not quiet else _no_status():
+            rendered = render_results(out_dir)
     if json_summary:
-        _print_json(summary)
+        _print_json(summary if rendered is None else {**summary, "render": rendered})
     if not quiet:
-        _print_run_summary(summary, out_dir)
+        _show(run_summary(summary, out_dir))
+        if rendered is not None:
+            _show(rendered_report(rendered))
+
+
+def _show(renderables: list) -> None:
+    for item in renderables:
+        console.print(item)
+
+
+def _no_status():
+    from contextlib import nullcontext
+
+    return nullcontext()
+
+
+def _read_json(path: Path) -> dict:
+    """A JSON file the command wrote, or {} when it is not there or not readable."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
 
 
 def _print_summary_file(path: Path) -> None:
@@ -295,22 +317,6 @@ def _initial_object_mask(mask_file: Optional[Path], box: Optional[str], shape: t
     if not np.any(image > 0):
         raise InputError(f"initial object mask {mask_file} has no non-zero pixel")
     return image > 0
-
-
-def _print_run_summary(summary: dict, out_dir: Path) -> None:
-    table = Table(title=f"jsr reconstruct: {summary['frames_processed']} frames, {summary['fps']:.2f} fps")
-    for column in ("map", "keyframes", "point landmarks", "plane landmarks"):
-        table.add_column(column, justify="right" if column != "map" else "left")
-    for name, counts in summary["maps"].items():
-        table.add_row(name, str(counts["keyframes"]), str(counts["point_landmarks"]), str(counts["plane_landmarks"]))
-    console.print(table)
-    for item in summary.get("objects", []):
-        console.print(f"object {item['id']}: detected at frame {item['created_at_frame']}, "
-                      f"tracked in {item['frames_tracked']} frames")
-    console.print(
-        f"tracked {summary['frames_tracked']} of {summary['frames_processed']} frames "
-        f"({summary['frames_lost']} lost, {summary['relocalisations']} relocalisations); results in {out_dir}"
-    )
 
 
 @app.command(
@@ -423,79 +429,139 @@ def evaluate(
     if json_summary:
         _print_json(metrics)
     if not quiet:
-        _print_metrics(metrics)
+        _show(metrics_report(metrics))
         console.print(f"metrics written to {path}")
 
 
-def _print_metrics(metrics: dict) -> None:
-    camera = metrics.get("camera") or {}
-    table = Table(title="Camera")
-    table.add_column("metric")
-    table.add_column("value", justify="right")
-    ate, rpe = camera.get("ate") or {}, camera.get("rpe") or {}
-    for label, value, unit in (
-        ("ATE RMSE", ate.get("rmse"), "cm"),
-        ("ATE median", ate.get("median"), "cm"),
-        ("ATE max", ate.get("max"), "cm"),
-        ("RPE translation RMSE", rpe.get("translation_rmse"), "cm"),
-        ("RPE rotation RMSE", rpe.get("rotation_rmse"), "deg"),
-    ):
-        if value is not None:
-            shown = value * 100.0 if unit == "cm" else value
-            table.add_row(label, f"{shown:.3f} {unit}")
-    for key in ("frames_associated", "gt_frames_without_estimate"):
-        if key in camera:
-            table.add_row(key.replace("_", " "), str(camera[key]))
-    console.print(table)
-    objects = metrics.get("objects") or {}
-    matches = objects.get("matches") or []
-    if matches:
-        table = Table(title="Objects")
-        for column in ("estimated", "true", "frames", "t RMSE cm", "t median cm", "R RMSE deg", "tracked share",
-                       "further maps", "share, all maps"):
-            table.add_column(column, justify="right")
-        for match in matches:
-            table.add_row(
-                str(match.get("estimated_id")),
-                str(match.get("true_id")),
-                str(match.get("frames")),
-                f"{match.get('translation_rmse_cm', float('nan')):.2f}",
-                f"{match.get('translation_median_cm', float('nan')):.2f}",
-                f"{match.get('rotation_rmse_deg', float('nan')):.2f}",
-                f"{match.get('tracked_share', float('nan')):.2f}",
-                ", ".join(str(k) for k in match.get("further_maps", [])) or "-",
-                f"{match.get('tracked_share_all_maps', float('nan')):.2f}",
-            )
-        console.print(table)
-    masks = metrics.get("masks")
-    if masks:
-        console.print(
-            f"masks: precision {masks.get('precision', float('nan')):.3f}, "
-            f"recall {masks.get('recall', float('nan')):.3f} over {masks.get('frames', 0)} frames"
-        )
-
-
-@app.command(epilog="Example:\n\n  jsr plot results/ --groundtruth sample_data/groundtruth.txt")
+@app.command(epilog="Examples:\n\n  jsr plot results/\n\n  jsr plot results/ --sequence sample_data/\n\n"
+             "  jsr plot results/ --groundtruth other/groundtruth.txt --out figures/")
 @_user_errors
 def plot(
     results: Path = typer.Argument(..., help="Results folder of 'jsr reconstruct'."),
-    groundtruth: Optional[Path] = typer.Option(None, "--groundtruth", help="TUM ground truth to draw beside."),
+    sequence: Optional[Path] = typer.Option(
+        None, "--sequence", help="Sequence folder with ground truth (default: the one the run read, if there)."),
+    groundtruth: Optional[Path] = typer.Option(None, "--groundtruth", help="TUM camera ground truth to draw beside."),
     out: Optional[Path] = typer.Option(None, "--out", help="Folder for the PNGs (default RESULTS/plots)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing."),
 ) -> None:
-    """Draw the paper's Figure 7 (keyframes and landmarks per map over frames) and the trajectory."""
-    from jsr.export.plots import plot_landmark_counts, plot_trajectory
+    """Draw the paper's Figure 7 (keyframes and landmarks per map over frames) and the camera
+    and object trajectories, with the ground truth aligned as 'jsr evaluate' aligns it."""
+    from jsr.errors import InputError
+    from jsr.export.plots import plot_results
 
     _configure_logging(0, quiet)
     out_dir = out or Path(results) / "plots"
     if out_dir.exists() and not out_dir.is_dir():
         _fail(f"--out {out_dir} is a file; give a folder")
-    written = [plot_landmark_counts(Path(results) / "landmarks.csv", out_dir / "landmarks.png")]
-    if (Path(results) / "camera.tum").is_file():
-        written.append(plot_trajectory(Path(results) / "camera.tum", out_dir / "trajectory.png", groundtruth))
+    if sequence is not None and not sequence.is_dir():
+        raise InputError(f"sequence folder {sequence} does not exist")
+    if groundtruth is not None and not groundtruth.is_file():
+        raise InputError(f"ground truth {groundtruth} does not exist")
+    written = plot_results(results, out_dir, sequence, groundtruth)
     if not quiet:
         for path in written:
             console.print(f"wrote {path}")
+
+
+@app.command(epilog="Examples:\n\n  jsr render results/\n\n"
+             "  jsr render results/ --frame 20 --views 4 --width 1024 --out previews/")
+@_user_errors
+def render(
+    results: Path = typer.Argument(..., help="Results folder of 'jsr reconstruct' (a complete run, with meshes)."),
+    frame: Optional[int] = typer.Option(
+        None, "--frame", help="Frame whose object poses the scene view shows (default: the last processed)."),
+    views: int = typer.Option(3, "--views", help="Number of static-map views, spread along the camera path."),
+    width: int = typer.Option(800, "--width", help="Image width in pixels (height: the sequence's aspect ratio)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Folder for the PNGs (default RESULTS/plots)."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing but errors."),
+    json_summary: bool = typer.Option(False, "--json", help="Print what was written as one line of JSON."),
+) -> None:
+    """Render PNG previews on the CPU (no display needed): the static mesh from viewpoints along
+    the camera path, the scene with every object placed at its pose in a frame, each in its own
+    tint (the paper's Figure 6 A), and each object model alone (Figure 6 D)."""
+    from jsr.export.render import render_results
+
+    _configure_logging(0, quiet)
+    if out is not None and out.exists() and not out.is_dir():
+        _fail(f"--out {out} is a file; give a folder")
+    with console.status("rendering previews", spinner="dots") if not quiet else _no_status():
+        rendered = render_results(results, out, frame=frame, views=views, width=width)
+    if json_summary:
+        _print_json(rendered)
+    if not quiet:
+        _show(rendered_report(rendered))
+
+
+@app.command(epilog="Examples:\n\n  jsr batch manifest.csv --out runs/\n\n"
+             "  jsr batch manifest.yaml --out runs/ --workers 2 --save-masks --render\n\n"
+             "  jsr batch manifest.csv --out runs/ --scheduler tcp://scheduler-host:8786 -q --json\n\n"
+             "manifest.csv:\n\n  sequence,name,preset,start,max_frames,set\n\n"
+             "  data/kitchen,,,0,300,\n\n  data/office,office_fast,bonn,,,ransac.min_matches=12;seed=1")
+@_user_errors
+def batch(
+    manifest: Path = typer.Argument(..., help="CSV (header: sequence[,name,preset,start,max_frames,set]) or YAML."),
+    out: Path = typer.Option(..., "--out", "-o", help="Folder for one results folder per sequence and the summary."),
+    workers: Optional[int] = typer.Option(
+        None, "--workers", help="Worker processes of the local cluster (default: one per two cores)."),
+    scheduler: Optional[str] = typer.Option(
+        None, "--scheduler", help="Address of a running Dask scheduler to use instead (tcp://host:8786)."),
+    config_file: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML config for every sequence."),
+    overrides: List[str] = typer.Option([], "--set", help="Override for every sequence: section.key=value."),
+    save_masks: bool = typer.Option(False, "--save-masks", help="Write masks/ in each results folder."),
+    render: bool = typer.Option(False, "--render", help="Write PNG previews in each results folder."),
+    force: bool = typer.Option(False, "--force", help="Redo sequences whose results are complete."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress or lines per sequence; errors only."),
+    json_summary: bool = typer.Option(False, "--json", help="Print the batch summary as one line of JSON."),
+    verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="More log output (-v info, -vv debug)."),
+) -> None:
+    """Reconstruct the sequences of a manifest, each as one task on Dask (a local cluster, or
+    an existing scheduler). Each gets the results folder 'jsr reconstruct' writes, evaluated
+    when it has ground truth; OUT/batch_summary.csv and .json are written as tasks finish. A
+    rerun skips sequences already complete with the same settings; a failing sequence is
+    recorded and the others go on. Exit code 3 when some sequence failed."""
+    from jsr.batch.manifest import read_manifest
+    from jsr.batch.run import run_batch
+    from jsr.batch.task import BatchSettings
+    from jsr.config import load_config
+
+    _configure_logging(verbose, quiet)
+    logging.getLogger("distributed").setLevel(logging.ERROR)  # its worker chatter is not the user's business
+    entries = read_manifest(manifest)
+    load_config(config_file, overrides)  # a typo in the options shared by all is reported before anything runs
+    settings = BatchSettings(config_file=config_file, overrides=tuple(overrides), save_masks=save_masks,
+                             render=render, force=force)
+    started = time.perf_counter()
+    with _progress(quiet) as progress:
+        task = progress.add_task("batch", total=len(entries), rate="")
+
+        def on_result(row: dict) -> None:
+            if not quiet:
+                progress.console.print(batch_line(row), soft_wrap=True)
+                notes = [row[key] for key in ("render_error", "evaluation_error") if row.get(key)]
+                for warning in [*(row.get("warnings") or []), *notes]:
+                    progress.console.print(f"  [yellow]warning[/] {escape(warning)}", soft_wrap=True)
+            if row["status"] not in ("interrupted", "not started"):
+                progress.advance(task)
+            done = int(progress.tasks[0].completed)
+            progress.update(task, rate=f"{done / max(time.perf_counter() - started, 1e-9) * 3600:.1f} sequences/h")
+
+        stopped: KeyboardInterrupt | None = None
+        try:
+            summary = run_batch(entries, out, settings, workers=workers, scheduler=scheduler, on_result=on_result)
+        except KeyboardInterrupt as interrupt:
+            stopped = interrupt
+    if stopped is not None:
+        if json_summary:
+            _print_summary_file(out / "batch_summary.json")
+        counts = batch_counts(_read_json(out / "batch_summary.json"))
+        console.print(f"[yellow]interrupted[/]: {counts}; summary in {escape(str(out / 'batch_summary.csv'))}")
+        raise typer.Exit(_interrupt_exit_code(stopped))
+    if json_summary:
+        _print_json(summary)
+    if not quiet:
+        _show(batch_report(summary, out))
+    if summary["counts"].get("failed"):
+        raise typer.Exit(EXIT_SOME_FAILED)
 
 
 @app.command("export-object", epilog="Examples:\n\n  jsr export-object results/ 1 --out box.ply\n\n"

@@ -33,7 +33,7 @@ def test_version():
     assert result.exit_code == 0 and __version__ in result.output
 
 
-@pytest.mark.parametrize("command", ["reconstruct", "synth", "evaluate", "plot", "export-object"])
+@pytest.mark.parametrize("command", ["reconstruct", "synth", "evaluate", "plot", "export-object", "render", "batch"])
 def test_help_has_examples(command):
     result = run(command, "--help")
     assert result.exit_code == 0
@@ -42,10 +42,12 @@ def test_help_has_examples(command):
 
 def test_reconstruct_writes_results(tmp_path, synth_sequence):
     out = tmp_path / "out"
-    result = run("reconstruct", synth_sequence, "--out", out, "--set", "seed=5", "--max-frames", "6", "-q")
+    result = run("reconstruct", synth_sequence, "--out", out, "--set", "seed=5", "--max-frames", "6", "-q", "--render",
+                 "--set", "output.mesh_voxel_size=0.03")
     assert result.exit_code == 0, result.output
     for name in ("config.yaml", "summary.json", "camera.tum", "landmarks.csv", "timings.csv",
-                 "static/keyframes.tum", "static/landmarks.ply", "static/mesh.ply"):
+                 "static/keyframes.tum", "static/landmarks.ply", "static/mesh.ply",
+                 "plots/static_view_1.png", "plots/scene_frame_5.png"):
         assert (out / name).is_file(), name
     assert "seed: 5" in (out / "config.yaml").read_text()
     summary = json.loads((out / "summary.json").read_text())

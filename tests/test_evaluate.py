@@ -236,11 +236,13 @@ def test_object_pose_error_is_measured_at_the_true_centre_not_at_a_far_frame_ori
     assert about_far_origin.translation_median_cm == pytest.approx(100.0 * lever * np.radians(1.0), rel=1e-3)
 
 
-def _fake_error(estimated_id: int, true_id: int, median: float, frames: int = 10) -> ObjectPoseError:
-    return ObjectPoseError(estimated_id, true_id, frames, median, median, 0.0, 0.0, np.eye(4))
+def _fake_error(estimated_id: int, true_id: int, median: float, frames: int = 10,
+                followed: int | None = None) -> ObjectPoseError:
+    return ObjectPoseError(estimated_id, true_id, frames, median, median, 0.0, 0.0, np.eye(4),
+                           frames_followed=frames if followed is None else followed)
 
 
-def test_match_objects_is_greedy_one_to_one_by_median_translation_error():
+def test_match_objects_ties_in_coverage_go_by_median_translation_error():
     errors = [
         _fake_error(1, 1, 5.0),
         _fake_error(1, 2, 1.0),
@@ -251,6 +253,26 @@ def test_match_objects_is_greedy_one_to_one_by_median_translation_error():
     ]
     matches = match_objects(errors)
     assert [(m.estimated_id, m.true_id) for m in matches] == [(1, 2), (2, 1)]
+
+
+def test_match_objects_prefers_the_map_that_follows_the_object_longest():
+    """The bundled sample's case: one box followed by a 26-frame map and, later, a 4-frame map
+    that happens to be more accurate; and a long map of something else that follows nothing."""
+    errors = [
+        _fake_error(1, 1, 0.8, frames=26),
+        _fake_error(2, 1, 0.01, frames=4),
+        _fake_error(3, 1, 30.0, frames=40, followed=1),  # a static thing taken for an object
+    ]
+    (match,) = match_objects(errors)
+    assert match.estimated_id == 1
+
+
+def test_frames_followed_counts_frames_within_the_follow_gate():
+    _, cameras, objects, _, world = object_scene(10, count=10)
+    wrong = objects.copy()
+    wrong[6:, :3, 3] += [0.2, 0.0, 0.0]  # the last 4 frames 20 cm off: followed in the first 6 only
+    error = object_pose_error(world @ cameras, world @ wrong, cameras, objects)
+    assert error.frames == 10 and error.frames_followed == 6
 
 
 # ---------------------------------------------------------------------------------- masks
@@ -449,3 +471,16 @@ def test_further_maps_of_one_object_are_pooled(tmp_path):
     assert match["tracked_share_all_maps"] == pytest.approx(15 / 15)
     assert objects_section["unmatched_estimated"] == [2]
     assert [entry["estimated_id"] for entry in objects_section["further_maps"]] == [3]
+
+
+def test_evaluate_tables_fit_80_columns(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    import jsr.cli
+
+    sequence, results, _ = make_run(tmp_path)
+    monkeypatch.setattr(jsr.cli.console, "width", 80)
+    result = CliRunner().invoke(jsr.cli.app, ["evaluate", str(results), str(sequence)])
+    assert result.exit_code == 0, result.output
+    assert "Objects" in result.output and "…" not in result.output
+    assert max(len(line) for line in result.output.splitlines()) <= 80

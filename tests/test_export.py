@@ -98,3 +98,23 @@ def test_tsdf_grid_grows_past_its_first_allocation(synth_sequence, monkeypatch):
     assert np.array_equal(np.asarray(grown.vertex_colors), np.asarray(reference.vertex_colors))
     assert np.array_equal(np.asarray(cloud.points), np.asarray(reference_cloud.points))
     assert np.array_equal(np.asarray(cloud.colors), np.asarray(reference_cloud.colors))
+
+
+def test_plot_results_overlays_ground_truth_and_objects(tmp_path):
+    from jsr.export.plots import estimated_object_paths, plot_results, true_object_paths
+
+    points, poses = make_results(tmp_path / "results")
+    sequence = tmp_path / "seq"
+    shift = make_transform(rotation_about_axis([0, 1, 0], 0.3), [0.5, 0.0, 0.2])  # another world
+    cameras = np.stack([make_transform(np.eye(3), [0.1 * i, 0, 0]) for i in range(3)])
+    write_tum_trajectory(tmp_path / "results" / "camera.tum", np.array([10.0, 10.1, 10.2]), cameras)
+    write_tum_trajectory(sequence / "groundtruth.txt", np.array([10.0, 10.1, 10.2]), shift @ cameras)
+    write_tum_trajectory(sequence / "objects" / "object_1.txt", np.array([10.0, 10.1, 10.2]), shift @ poses)
+    paths = estimated_object_paths(tmp_path / "results")
+    centre = 0.5 * (points.min(axis=0) + points.max(axis=0))  # of the landmarks: this object has no mesh
+    np.testing.assert_allclose(paths[1], poses[:, :3, :3] @ centre + poses[:, :3, 3])
+    np.testing.assert_allclose(true_object_paths(sequence)[1], (shift @ poses)[:, :3, 3])
+    plain = plot_results(tmp_path / "results", tmp_path / "plain")
+    overlaid = plot_results(tmp_path / "results", tmp_path / "overlaid", sequence_dir=sequence)
+    assert [p.name for p in overlaid] == ["landmarks.png", "trajectory.png"]
+    assert overlaid[1].read_bytes() != plain[1].read_bytes()

@@ -122,3 +122,19 @@ def test_frame_without_valid_depth_mid_sequence_is_reported(synth_sequence, tmp_
     warnings = [r.getMessage() for r in caplog.records if "no valid depth" in r.getMessage()]
     assert warnings == [f"frame 3: depth image {blank.name} has no valid depth; check it (the frame can only be "
                         "placed from 2D matches)"]
+
+
+def test_blas_runs_on_one_thread_within_the_block_and_as_before_after():
+    from threadpoolctl import threadpool_info
+
+    from jsr.pipeline.run import single_threaded_blas
+
+    def blas_threads():
+        return [info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas"]
+
+    with single_threaded_blas():
+        pass  # SciPy's BLAS is loaded now
+    before = blas_threads()
+    with single_threaded_blas():
+        assert blas_threads() == [1] * len(before)
+    assert blas_threads() == before

@@ -14,7 +14,14 @@ from jsr.evaluate.stats import angle_degrees, matrix, number, rms
 from jsr.geometry import invert_transform, make_transform
 
 MIN_MATCH_FRAMES = 3
-"""An estimated object is matched to a true object only over at least this many common frames."""
+"""An estimated object is matched to a true object only when it follows it in at least this many frames."""
+
+FOLLOW_MAX_CM = 5.0
+FOLLOW_MAX_DEG = 10.0
+"""An estimated map follows a true object in a frame where its pose error there (after the
+constant offset) is at most this; those are the frames of the object it covers. Well above the
+errors of a map that tracks the object (its targets are 2 cm and 2 degrees), well below those
+of a map of something else (a jump moves an object by tens of centimetres)."""
 
 EXTRA_MAP_MAX_CM = 3.0
 EXTRA_MAP_MAX_DEG = 3.0
@@ -44,12 +51,15 @@ class ObjectPoseError:
     rotation_max_deg: float = math.nan
     translation_errors_cm: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
     rotation_errors_deg: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    frames_followed: int = 0
+    """Common frames whose error is within ``FOLLOW_MAX_CM`` and ``FOLLOW_MAX_DEG``."""
 
     def as_dict(self) -> dict:
         return {
             "estimated_id": int(self.estimated_id),
             "true_id": int(self.true_id),
             "frames": int(self.frames),
+            "frames_followed": int(self.frames_followed),
             "translation_rmse_cm": number(self.translation_rmse_cm),
             "translation_median_cm": number(self.translation_median_cm),
             "translation_max_cm": number(self.translation_max_cm),
@@ -120,14 +130,19 @@ def object_pose_error(
         rotation_max_deg=float(np.max(rotation_errors)),
         translation_errors_cm=translation_errors,
         rotation_errors_deg=rotation_errors,
+        frames_followed=int(np.count_nonzero((translation_errors <= FOLLOW_MAX_CM)
+                                             & (rotation_errors <= FOLLOW_MAX_DEG))),
     )
 
 
 def match_objects(errors: Iterable[ObjectPoseError], min_frames: int = MIN_MATCH_FRAMES) -> list[ObjectPoseError]:
-    """Greedy one-to-one matching by lowest median translation error (pairs with >= ``min_frames``)."""
+    """Greedy one-to-one matching: a true object goes to the map that follows it in the most
+    frames (:attr:`ObjectPoseError.frames_followed`, at least ``min_frames``), ties to the lower
+    median translation error. An object split into a long map and a short one is so measured
+    on the long one (the short one can still be pooled by :func:`pool_extra_maps`)."""
     candidates = sorted(
-        (error for error in errors if error.frames >= min_frames),
-        key=lambda error: (error.translation_median_cm, error.estimated_id, error.true_id),
+        (error for error in errors if error.frames_followed >= min_frames),
+        key=lambda error: (-error.frames_followed, error.translation_median_cm, error.estimated_id, error.true_id),
     )
     used_estimated, used_true, matches = set(), set(), []
     for error in candidates:

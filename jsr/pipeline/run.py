@@ -42,7 +42,7 @@ import numpy as np
 from jsr import __version__
 from jsr.config import Config, config_to_yaml
 from jsr.io.atomic import atomic_write_bytes, atomic_write_text
-from jsr.io.dataset import RGBDSequence
+from jsr.io.dataset import RGBDSequence, open_sequence
 from jsr.io.trajectory import write_tum_trajectory
 from jsr.export.meshes import write_dense_models
 from jsr.io.writers import write_csv, write_json, write_point_cloud_ply
@@ -193,6 +193,43 @@ class ResultsWriter:
         return summary
 
 
+def open_configured_sequence(path: Path, config: Config, camera_file: Path | None = None, preset: str | None = None,
+                             start: int = 0, max_frames: int | None = None, stride: int = 1) -> RGBDSequence:
+    """Open a sequence with the input settings of ``config`` (timestamp association, depth
+    range), as ``jsr reconstruct`` and ``jsr batch`` do."""
+    return open_sequence(
+        path,
+        camera_file=camera_file,
+        preset=preset,
+        max_time_difference=config.input.max_time_difference,
+        start=start,
+        max_frames=max_frames,
+        stride=stride,
+        min_depth=config.input.min_depth,
+        max_depth=config.input.max_depth,
+    )
+
+
+@contextmanager
+def single_threaded_blas():
+    """Within the block, the BLAS libraries numpy and SciPy loaded use one thread (the limit is
+    process-wide; enter and leave the block in one thread, and not in several threads at once:
+    OpenBLAS restores a limit reliably only from the thread that set it).
+
+    A large product's sums are split among BLAS threads, so a reconstruction's results change
+    in their last digits with the thread count: kitchen_box120 (120 frames) differed by 1e-7 m
+    from frame 43 on between 2 threads and 1. ``jsr reconstruct`` runs inside this block, as
+    Dask's worker processes run with ``OPENBLAS_NUM_THREADS=1``, so that a sequence gives the
+    same files in ``jsr batch`` as on the command line, on any number of cores. The
+    reconstruction's own threads keep the cores busy: side by side on 2 cores, kitchen_box120
+    took 426 s with one BLAS thread against 468 s with two."""
+    import scipy.linalg  # noqa: F401  (loads SciPy's BLAS, so that the limit reaches it too)
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
 @contextmanager
 def interrupts_deferred():
     """Within the block, SIGINT (Ctrl-C) and SIGTERM are noted and logged, not raised: the
@@ -233,7 +270,8 @@ def run_reconstruction(
     object map 1 on the first frame (see :class:`Reconstructor`). Returns the summary dict
     (also written to ``summary.json``). A KeyboardInterrupt or any exception is re-raised after
     the results of the frames done have been written; further Ctrl-C or SIGTERM while they are
-    written are ignored (:func:`interrupts_deferred`).
+    written are ignored (:func:`interrupts_deferred`). For results that do not depend on the
+    number of cores, run it inside :func:`single_threaded_blas` (``jsr reconstruct`` does).
     """
     writer = ResultsWriter(out_dir, sequence, config)
     writer.write_config()
