@@ -33,7 +33,7 @@ sys.path.insert(0, str(REPO))
 from jsr.geometry import invert_transform, transform_points  # noqa: E402
 from jsr.io.trajectory import read_tum_trajectory  # noqa: E402
 from jsr.synth.background import open_background  # noqa: E402
-from jsr.synth.render import camera_rays  # noqa: E402
+from jsr.synth.render import camera_rays, field_of_view  # noqa: E402
 from jsr.synth.scene import Shape, footprint_radius  # noqa: E402
 
 SHARED = REPO.parent / "shared" / "data"
@@ -46,6 +46,7 @@ def ground_truth_consistency(root: Path, pairs: int = 14) -> dict[int, float]:
     background = open_background(root, 0, total)
     intrinsics = background.intrinsics
     rays = camera_rays(intrinsics)
+    field = field_of_view(intrinsics)  # points beyond it would be folded into the image by the distortion
     result = {}
     for gap in GAPS:
         medians = []
@@ -56,7 +57,9 @@ def ground_truth_consistency(root: Path, pairs: int = 14) -> dict[int, float]:
             points = rays[valid] * depth[valid, None]
             T = invert_transform(background.depth_poses[second]) @ background.depth_poses[first]
             moved = transform_points(T, points)
-            ahead = moved[:, 2] > 0.1
+            x_min, x_max, y_min, y_max = field
+            x, y = moved[:, 0] / moved[:, 2], moved[:, 1] / moved[:, 2]
+            ahead = (moved[:, 2] > 0.1) & (x >= x_min) & (x <= x_max) & (y >= y_min) & (y <= y_max)
             pixels, _ = cv2.projectPoints(moved[ahead].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), intrinsics.matrix,
                                           intrinsics.distortion_coefficients)
             pixels = np.round(pixels.reshape(-1, 2)).astype(int)

@@ -25,6 +25,7 @@ from jsr.synth.background import open_background
 from jsr.synth.composite import Compositor, build_composite_plan, generate_composite
 from jsr.synth.options import CompositeOptions
 from jsr.synth.scene import Shape, footprint_radius
+from jsr.synth.support import BackgroundViews
 
 runner = CliRunner()
 
@@ -244,6 +245,21 @@ def test_ground_truth_is_interpolated_between_its_samples():
     result = interpolate_poses(times, poses, query)
     for time, pose in zip(query, result):
         np.testing.assert_allclose(pose, camera_pose(COLOUR_T0 + time), atol=1e-9)
+
+
+def test_places_outside_the_field_of_view_are_not_visible_through_the_distortion(background):
+    """OpenCV's distortion polynomial folds points far outside the view back into the image;
+    such a place must not count as visible (objects had been placed out of view so)."""
+    loaded = open_background(background, 0, 2)
+    views = BackgroundViews(loaded, 4, np.full((2, HEIGHT // 4, WIDTH // 4), np.inf, np.float32))
+    inside_camera = np.array([[0.1, 0.05, 1.5]])
+    outside_camera = np.array([[2.3 * 1.5, 0.0, 1.5]])  # 66 degrees off the axis, the image spans 30
+    folded, _ = cv2.projectPoints(outside_camera, np.zeros(3), np.zeros(3), INTRINSICS.matrix,
+                                  INTRINSICS.distortion_coefficients)
+    assert 0 <= folded[0, 0, 0] < WIDTH and 0 <= folded[0, 0, 1] < HEIGHT  # what made the check needed
+    T_w_c = loaded.depth_poses[0]
+    assert views.visible(transform_points(T_w_c, inside_camera), 0)[0]
+    assert not views.visible(transform_points(T_w_c, outside_camera), 0)[0]
 
 
 @pytest.mark.parametrize(

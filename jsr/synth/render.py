@@ -71,6 +71,23 @@ def camera_rays(intrinsics) -> np.ndarray:
     ).reshape(-1, 3)
 
 
+def field_of_view(intrinsics) -> tuple[float, float, float, float]:
+    """``(x_min, x_max, y_min, y_max)``: the normalised image coordinates (x/z, y/z) the image's
+    border pixels see, lens distortion undone. A point beyond them is out of view even if
+    OpenCV's projection brings it into the image: a distortion polynomial folds points far
+    outside the field of view back inside."""
+    width, height = intrinsics.width, intrinsics.height
+    columns, rows = np.arange(width, dtype=float), np.arange(height, dtype=float)
+    border = np.concatenate([
+        np.column_stack([columns, np.zeros(width)]), np.column_stack([columns, np.full(width, height - 1.0)]),
+        np.column_stack([np.zeros(height), rows]), np.column_stack([np.full(height, width - 1.0), rows]),
+    ])
+    ideal = intrinsics.undistort_pixels(border)
+    x = (ideal[:, 0] - intrinsics.cx) / intrinsics.fx
+    y = (ideal[:, 1] - intrinsics.cy) / intrinsics.fy
+    return float(x.min()), float(x.max()), float(y.min()), float(y.max())
+
+
 def sensor_depth_model(
     depth_clean: np.ndarray, grazing: np.ndarray, seed: int, index: int, depth_noise: bool, dropout: float
 ) -> SensorDepth:

@@ -36,7 +36,7 @@ from jsr.errors import InputError
 from jsr.geometry import KINECT_SIGMA_Z_COEFFICIENT, invert_transform, make_transform, transform_points
 from jsr.synth.background import Background
 from jsr.synth.motion import random_turn
-from jsr.synth.render import camera_rays
+from jsr.synth.render import camera_rays, field_of_view
 
 logger = logging.getLogger(__name__)
 
@@ -116,9 +116,11 @@ class BackgroundViews:
     step: int
     near_depth: np.ndarray  # (F, h, w) float32 metres, inf where no depth
     T_c_w: np.ndarray = field(init=False)  # (F, 4, 4)
+    _field: tuple[float, float, float, float] = field(init=False)  # normalised x, y bounds of the image
 
     def __post_init__(self):
         self.T_c_w = invert_transform(self.background.depth_poses)
+        self._field = field_of_view(self.background.intrinsics)
 
     def visible(self, points_w: np.ndarray, frame: int, radius: float = 0.0) -> np.ndarray:
         """``(N,)`` bool: whether objects of ``radius`` (m) centred at world points ``(N, 3)`` are
@@ -127,6 +129,10 @@ class BackgroundViews:
         camera = transform_points(self.T_c_w[frame], points_w)
         z = camera[:, 2]
         result = (z >= VIEW_RANGE[0]) & (z <= VIEW_RANGE[1])
+        x_min, x_max, y_min, y_max = self._field
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x, y = camera[:, 0] / z, camera[:, 1] / z
+        result &= (x >= x_min) & (x <= x_max) & (y >= y_min) & (y <= y_max)
         if not np.any(result):
             return result
         pixels, _ = cv2.projectPoints(
