@@ -321,7 +321,8 @@ def _initial_object_mask(mask_file: Optional[Path], box: Optional[str], shape: t
 
 @app.command(
     epilog="Examples:\n\n  jsr synth out/seq --frames 60 --objects 1 --motion jump\n\n"
-    "  jsr synth out/two --objects 2 --motion smooth --simultaneous --width 320 --height 240 --seed 3"
+    "  jsr synth out/two --objects 2 --motion smooth --simultaneous --width 320 --height 240 --seed 3\n\n"
+    "  jsr synth out/kitchen --background ../shared/data/redkitchen300 --start 60 --frames 120 --seed 1"
 )
 @_user_errors
 def synth(
@@ -330,32 +331,64 @@ def synth(
     objects: int = typer.Option(1, "--objects", help="Number of rigid moving objects (0: static scene)."),
     motion: str = typer.Option("jump", "--motion", help="Object motion: jump, smooth or static."),
     simultaneous: bool = typer.Option(False, "--simultaneous", help="Move all objects in the same frames."),
-    width: int = typer.Option(640, "--width", help="Image width in pixels."),
-    height: int = typer.Option(480, "--height", help="Image height in pixels."),
+    background: Optional[Path] = typer.Option(
+        None, "--background", help="A real TUM RGB-D sequence with groundtruth.txt and camera.yaml: composite the "
+        "objects into its frames (its camera, size and timestamps) instead of rendering a room.",
+    ),
+    start: int = typer.Option(0, "--start", help="With --background: its first frame to use."),
+    period: Optional[int] = typer.Option(
+        None, "--period", help="With --background: frames between two motions (default 15)."
+    ),
+    width: Optional[int] = typer.Option(None, "--width", help="Image width in pixels (default 640)."),
+    height: Optional[int] = typer.Option(None, "--height", help="Image height in pixels (default 480)."),
     noise: bool = typer.Option(True, "--noise/--no-noise", help="Kinect-like depth noise sigma_Z = 1.425e-3 Z^2."),
     dropout: float = typer.Option(0.02, "--dropout", help="Fraction of depth pixels dropped at random."),
-    image_format: str = typer.Option("png", "--format", help="Colour image format: png or jpg."),
+    image_format: Optional[str] = typer.Option(
+        None, "--format", help="Colour image format: png or jpg (default png; with --background, the background's)."
+    ),
     seed: int = typer.Option(0, "--seed", help="Random seed; the same seed gives the same files."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a sequence already in OUT."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
     json_summary: bool = typer.Option(False, "--json", help="Print a one-line JSON summary on stdout."),
 ) -> None:
-    """Write a synthetic RGB-D sequence with exact ground truth (camera, objects, labels)."""
-    from jsr.synth.options import SynthOptions, validate_options
+    """Write a synthetic RGB-D sequence with exact ground truth (camera, objects, labels), or
+    composite rendered objects into a real sequence (--background)."""
+    from jsr.synth.options import COMPOSITE_PERIOD, CompositeOptions, SynthOptions, validate_options
     from jsr.synth.write import check_output_folder, generate_sequence
 
     _configure_logging(0, quiet)
+    if background is not None:
+        if width is not None or height is not None:
+            _fail("--width and --height cannot be used with --background: a composite has the background's size")
+        options = CompositeOptions(
+            background=str(background),
+            frames=frames,
+            start=start,
+            objects=objects,
+            motion=motion,
+            simultaneous=simultaneous,
+            depth_noise=noise,
+            dropout=dropout,
+            seed=seed,
+            image_format=image_format,
+            period=COMPOSITE_PERIOD if period is None else period,
+        )
+        _synth_composite(out, options, overwrite, quiet, json_summary)
+        return
+    for name, given in (("--start", start != 0), ("--period", period is not None)):
+        if given:
+            _fail(f"{name} needs --background (it selects the frames of a real sequence)")
     options = SynthOptions(
         frames=frames,
         objects=objects,
         motion=motion,
         simultaneous=simultaneous,
-        width=width,
-        height=height,
+        width=640 if width is None else width,
+        height=480 if height is None else height,
         depth_noise=noise,
         dropout=dropout,
         seed=seed,
-        image_format=image_format,
+        image_format="png" if image_format is None else image_format,
     )
     validate_options(options)  # bad options and a full folder are reported before the progress bar starts
     check_output_folder(out, overwrite)
@@ -369,6 +402,31 @@ def synth(
         _print_json(summary)
     if not quiet:
         console.print(f"wrote {frames} frames with {objects} object(s) to {out}")
+
+
+def _synth_composite(out: Path, options, overwrite: bool, quiet: bool, json_summary: bool) -> None:
+    """``jsr synth OUT --background SEQ``: :func:`jsr.synth.composite.generate_composite`."""
+    from jsr.synth.background import open_background
+    from jsr.synth.composite import check_composite_output, generate_composite
+    from jsr.synth.options import validate_composite_options
+
+    options = validate_composite_options(options)
+    # A bad background or a full folder are reported before the progress bar starts.
+    open_background(options.background, options.start, options.frames)
+    check_composite_output(out, options, overwrite)
+    started = time.perf_counter()
+    with _progress(quiet) as progress:
+        task = progress.add_task("composite", total=options.frames, rate="")
+        report = _fps_reporter(progress, task, started)
+        summary = generate_composite(out, options, overwrite=overwrite, progress=report)
+    if json_summary:
+        _print_json(summary)
+    if not quiet:
+        in_view = ", ".join(str(count) for count in summary["frames_in_view"]) or "-"
+        console.print(
+            f"wrote {options.frames} frames of {options.background} with {options.objects} object(s) on a surface of "
+            f"{summary['surface_area_m2']:.2f} m2 (frames in view per object: {in_view}) to {out}"
+        )
 
 
 @app.command(epilog="Examples:\n\n  jsr frames sample_data --out overlays/ --stride 5\n\n"

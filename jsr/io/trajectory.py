@@ -61,3 +61,31 @@ def read_tum_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if not rows:
         return np.zeros(0), np.zeros((0, 4, 4))
     return np.asarray(timestamps), pose_from_tum(np.asarray(rows))
+
+
+def interpolate_poses(timestamps: np.ndarray, poses: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """Poses ``(Q, 4, 4)`` of a trajectory (``(M,)`` increasing timestamps, ``(M, 4, 4)``) at
+    ``(Q,)`` query times: translation linear, rotation along the geodesic (slerp) between the
+    two poses around each query. A query outside the trajectory's span is extrapolated from
+    its end segment at constant velocity; callers bound how far that may go."""
+    from scipy.spatial.transform import Rotation
+
+    timestamps = np.asarray(timestamps, dtype=float).reshape(-1)
+    poses = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
+    query = np.asarray(query, dtype=float).reshape(-1)
+    if len(timestamps) < 2:
+        if len(timestamps) == 1:
+            return np.repeat(poses[:1], len(query), axis=0)
+        raise ValueError("interpolate_poses needs at least one pose")
+    if np.any(np.diff(timestamps) <= 0):
+        raise ValueError("interpolate_poses needs strictly increasing timestamps")
+    segment = np.clip(np.searchsorted(timestamps, query, side="right") - 1, 0, len(timestamps) - 2)
+    t0, t1 = timestamps[segment], timestamps[segment + 1]
+    s = (query - t0) / (t1 - t0)
+    start, end = poses[segment], poses[segment + 1]
+    relative = Rotation.from_matrix(np.einsum("nji,njk->nik", start[:, :3, :3], end[:, :3, :3])).as_rotvec()
+    result = np.zeros((len(query), 4, 4))
+    result[:, :3, :3] = start[:, :3, :3] @ Rotation.from_rotvec(relative * s[:, None]).as_matrix()
+    result[:, :3, 3] = start[:, :3, 3] + s[:, None] * (end[:, :3, 3] - start[:, :3, 3])
+    result[:, 3, 3] = 1.0
+    return result

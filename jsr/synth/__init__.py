@@ -19,14 +19,31 @@ Randomness: every draw comes from generators derived from ``options.seed`` with
 :class:`numpy.random.SeedSequence` spawn keys (plan, per-texture-tile, per-frame), so a
 result does not depend on the order in which frames or textures are computed.
 
+Composites (:func:`generate_composite`, ``jsr synth OUT --background SEQ``) put the same
+objects, textures, sensor model and motion schedules into frames of a real sequence with
+ground-truth camera poses, by depth test, on a surface found in its depth.
+
 Modules: :mod:`~jsr.synth.options` (what to render, validation), :mod:`~jsr.synth.randomness`
-(the seeded streams), :mod:`~jsr.synth.scene` (geometry, motion schedule, camera path),
+(the seeded streams), :mod:`~jsr.synth.scene` (geometry, camera path),
+:mod:`~jsr.synth.motion` (motion schedules, object placement on a support surface),
 :mod:`~jsr.synth.textures` (procedural textures), :mod:`~jsr.synth.render` (ray casting and
-the depth sensor model) and :mod:`~jsr.synth.write` (the sequence folder). The package
-exposes the entry points users call.
+the depth sensor model), :mod:`~jsr.synth.write` (the sequence folder); for composites
+:mod:`~jsr.synth.background` (the real sequence and its ground truth),
+:mod:`~jsr.synth.support` (the surface objects rest on, visibility) and
+:mod:`~jsr.synth.composite` (depth test, the composite's folder). The package exposes the
+entry points users call.
 """
 
-from jsr.synth.options import SynthOptions, validate_options
+from jsr.synth.composite import generate_composite
+from jsr.synth.options import CompositeOptions, SynthOptions, validate_composite_options, validate_options
 from jsr.synth.write import check_output_folder, generate_sequence
 
-__all__ = ["SynthOptions", "check_output_folder", "generate_sequence", "validate_options"]
+__all__ = [
+    "CompositeOptions",
+    "SynthOptions",
+    "check_output_folder",
+    "generate_composite",
+    "generate_sequence",
+    "validate_composite_options",
+    "validate_options",
+]

@@ -34,6 +34,14 @@ class SynthOptions:
     image_format: str = "png"  # colour format: "png" or "jpg"
 
 
+def _integer(options, name: str) -> int:
+    """``options.name`` as an int, or :class:`InputError` naming the option."""
+    value = getattr(options, name)
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise InputError(f"--{name} must be an integer, got {value!r}")
+    return int(value)
+
+
 def validate_options(options: SynthOptions) -> SynthOptions:
     """Check ``options``; returns a normalised copy or raises :class:`InputError`."""
     if not isinstance(options, SynthOptions):
@@ -42,13 +50,9 @@ def validate_options(options: SynthOptions) -> SynthOptions:
     image_format = str(options.image_format).strip().lower().lstrip(".")
     image_format = "jpg" if image_format == "jpeg" else image_format
 
-    def integer(name: str) -> int:
-        value = getattr(options, name)
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-            raise InputError(f"--{name} must be an integer, got {value!r}")
-        return int(value)
-
-    frames, objects, width, height, seed = (integer(n) for n in ("frames", "objects", "width", "height", "seed"))
+    frames, objects, width, height, seed = (
+        _integer(options, n) for n in ("frames", "objects", "width", "height", "seed")
+    )
     if not 2 <= frames <= MAX_FRAMES:
         raise InputError(f"--frames must be between 2 and {MAX_FRAMES}, got {frames}")
     if not 0 <= objects <= MAX_OBJECTS:
@@ -86,4 +90,72 @@ def validate_options(options: SynthOptions) -> SynthOptions:
         seed=seed,
         fps=fps,
         image_format=image_format,
+    )
+
+
+COMPOSITE_PERIOD = 15  # frames between motions in a composite: a real camera needs more frames to see an object
+
+
+@dataclass
+class CompositeOptions:
+    """What :func:`jsr.synth.composite.generate_composite` renders into a real background.
+
+    ``frames`` consecutive frames of the TUM-layout sequence ``background`` from ``start``;
+    the image size, camera and timestamps are the background's. ``image_format`` None keeps
+    the background's colour format. ``period``: frames between the starts of two motions.
+    """
+
+    background: str
+    frames: int = 60
+    start: int = 0
+    objects: int = 1
+    motion: str = "jump"
+    simultaneous: bool = False
+    depth_noise: bool = True
+    dropout: float = 0.02
+    seed: int = 0
+    image_format: str | None = None
+    period: int = COMPOSITE_PERIOD
+
+    def synth_options(self, width: int = 640, height: int = 480, image_format: str = "png") -> SynthOptions:
+        """The :class:`SynthOptions` of the objects, motion and sensor model, for images of
+        ``width`` x ``height`` in ``image_format`` (when ``image_format`` here is None)."""
+        return SynthOptions(
+            frames=self.frames,
+            objects=self.objects,
+            motion=self.motion,
+            simultaneous=self.simultaneous,
+            width=width,
+            height=height,
+            depth_noise=self.depth_noise,
+            dropout=self.dropout,
+            seed=self.seed,
+            image_format=self.image_format or image_format,
+        )
+
+
+def validate_composite_options(options: CompositeOptions) -> CompositeOptions:
+    """Check ``options``; returns a normalised copy or raises :class:`InputError`.
+    The options it shares with :class:`SynthOptions` are checked as :func:`validate_options` does."""
+    if not isinstance(options, CompositeOptions):
+        raise InputError("options must be a CompositeOptions")
+    shared = validate_options(options.synth_options())
+    for name, least in (("start", 0), ("period", 2)):
+        if _integer(options, name) < least:
+            raise InputError(f"--{name} must be >= {least}, got {getattr(options, name)}")
+    if not str(options.background).strip():
+        raise InputError("--background needs the folder of a TUM RGB-D sequence")
+    return replace(
+        options,
+        background=str(options.background),
+        frames=shared.frames,
+        start=_integer(options, "start"),
+        objects=shared.objects,
+        motion=shared.motion,
+        simultaneous=shared.simultaneous,
+        depth_noise=shared.depth_noise,
+        dropout=shared.dropout,
+        seed=shared.seed,
+        image_format=None if options.image_format is None else shared.image_format,
+        period=_integer(options, "period"),
     )

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-# Randomness streams (first element of the SeedSequence spawn key).
-STREAM_PLAN, STREAM_TEXTURE, STREAM_FRAME = 0, 1, 2
+# Randomness streams (first element of the SeedSequence spawn key). A composite's objects and
+# motion come from their own stream: the same seed does not repeat jsr synth's own scenes.
+STREAM_PLAN, STREAM_TEXTURE, STREAM_FRAME, STREAM_COMPOSITE = 0, 1, 2, 3
 
 
 def seeded_rng(seed: int, *key: int) -> np.random.Generator:

@@ -2,7 +2,10 @@
 
 :class:`SynthRenderer` builds the texture atlas of a :class:`~jsr.synth.scene.ScenePlan`
 once, then renders frame by frame: colour (triplanar, trilinear texture lookup and simple
-shading), exact depth, sensor depth (axial noise, dropouts) and labels.
+shading), exact depth, sensor depth (axial noise, dropouts) and labels. Rays leave through
+the pixels of the plan's camera, lens distortion included, so that a rendering lines up
+with a real camera's images (composites, :mod:`jsr.synth.composite`).
+:func:`sensor_depth_model` is the sensor model alone.
 """
 
 from __future__ import annotations
@@ -25,6 +28,88 @@ MIP_LEVELS = 4  # texture pyramid levels (>= 2), against aliasing of distant tex
 
 # The texture of face (axis a, sign) of a shape is indexed by the two other local axes.
 _FACE_AXES = ((1, 2), (0, 2), (0, 1))
+
+
+@dataclass
+class ExactFrame:
+    """What the ray caster sees, before the depth sensor: ``depth`` is the exact z of the
+    visible surface (0 where nothing is hit), ``grazing`` marks surfaces seen at more than
+    ``GRAZING_LIMIT_DEGREES`` from their normal (the sensor gives no depth there)."""
+
+    color: np.ndarray  # (H, W, 3) uint8 RGB
+    depth: np.ndarray  # (H, W) float64 metres
+    grazing: np.ndarray  # (H, W) bool
+    labels: np.ndarray  # (H, W) uint8
+
+
+@dataclass
+class SensorDepth:
+    """The depth sensor's view of exact depth: ``depth`` with axial noise everywhere (not
+    masked), ``kept`` where the sensor gives depth before edge dropouts (in range, not grazing,
+    not dropped at random), ``edge_dropped`` where depth goes missing along a discontinuity.
+    The sensor's depth image is ``depth`` where ``kept & ~edge_dropped``, 0 elsewhere."""
+
+    depth: np.ndarray  # (H, W) float64 metres
+    kept: np.ndarray  # (H, W) bool
+    edge_dropped: np.ndarray  # (H, W) bool
+
+    def image(self) -> np.ndarray:
+        """``(H, W)`` float64 metres, 0 where the sensor gives no depth."""
+        return np.where(self.kept & ~self.edge_dropped, self.depth, 0.0)
+
+
+def camera_rays(intrinsics) -> np.ndarray:
+    """``(H * W, 3)`` camera-frame ray directions with z = 1, row by row, through the pixel
+    centres of a :class:`~jsr.io.camera.CameraIntrinsics` (lens distortion undone)."""
+    u, v = np.meshgrid(np.arange(intrinsics.width, dtype=float), np.arange(intrinsics.height, dtype=float))
+    if intrinsics.has_distortion:
+        ideal = intrinsics.undistort_pixels(np.column_stack([u.ravel(), v.ravel()]))
+        u, v = ideal[:, 0].reshape(u.shape), ideal[:, 1].reshape(v.shape)
+    # z = 1, so that a ray parameter t_hit is the depth z.
+    return np.stack(
+        [(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, np.ones_like(u)], axis=-1
+    ).reshape(-1, 3)
+
+
+def field_of_view(intrinsics) -> tuple[float, float, float, float]:
+    """``(x_min, x_max, y_min, y_max)``: the normalised image coordinates (x/z, y/z) the image's
+    border pixels see, lens distortion undone. A point beyond them is out of view even if
+    OpenCV's projection brings it into the image: a distortion polynomial folds points far
+    outside the field of view back inside."""
+    width, height = intrinsics.width, intrinsics.height
+    columns, rows = np.arange(width, dtype=float), np.arange(height, dtype=float)
+    border = np.concatenate([
+        np.column_stack([columns, np.zeros(width)]), np.column_stack([columns, np.full(width, height - 1.0)]),
+        np.column_stack([np.zeros(height), rows]), np.column_stack([np.full(height, width - 1.0), rows]),
+    ])
+    ideal = intrinsics.undistort_pixels(border)
+    x = (ideal[:, 0] - intrinsics.cx) / intrinsics.fx
+    y = (ideal[:, 1] - intrinsics.cy) / intrinsics.fy
+    return float(x.min()), float(x.max()), float(y.min()), float(y.max())
+
+
+def sensor_depth_model(
+    depth_clean: np.ndarray, grazing: np.ndarray, seed: int, index: int, depth_noise: bool, dropout: float
+) -> SensorDepth:
+    """Kinect-like depth of ``(H, W)`` exact depth (metres, 0 = nothing): axial noise
+    ``sigma_Z = 1.425e-3 Z^2``, out-of-range, grazing, edge and random dropouts. The draws
+    come from frame ``index``'s streams of ``seed`` (the same frame gives the same noise)."""
+    depth = depth_clean.copy()
+    kept = (depth_clean >= MIN_RANGE) & (depth_clean <= MAX_RANGE) & ~grazing
+    edge_dropped = np.zeros(depth_clean.shape, dtype=bool)
+    if depth_noise:
+        noise = seeded_rng(seed, STREAM_FRAME, index, 0).standard_normal(depth.shape)
+        depth = depth + noise * KINECT_SIGMA_Z_COEFFICIENT * depth_clean**2
+    if dropout > 0.0:
+        kept &= seeded_rng(seed, STREAM_FRAME, index, 1).random(depth.shape) >= dropout
+        # Thin bands along strong depth discontinuities go missing now and then.
+        far = np.where(depth_clean > 0, depth_clean, MAX_RANGE * 2).astype(np.float32)
+        kernel = np.ones((3, 3), np.uint8)
+        jump = cv2.dilate(far, kernel) - cv2.erode(far, kernel)
+        edges = jump > np.maximum(0.05, 0.04 * far)
+        drop = seeded_rng(seed, STREAM_FRAME, index, 2).random(depth.shape) < EDGE_DROP_PROBABILITY
+        edge_dropped = edges & drop
+    return SensorDepth(depth, kept, edge_dropped)
 
 
 @dataclass
@@ -54,12 +139,7 @@ class SynthRenderer:
         self._sizes = np.array([shape.size for shape in self.shapes], dtype=np.float64).reshape(-1, 3)
         self._texels = np.array([shape.texel for shape in self.shapes], dtype=np.float64)
         self._build_atlas()
-        intrinsics = plan.intrinsics
-        u, v = np.meshgrid(np.arange(intrinsics.width, dtype=float), np.arange(intrinsics.height, dtype=float))
-        # Camera-frame directions with z = 1, so the ray parameter t_hit is the depth z.
-        self._directions = np.stack(
-            [(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, np.ones_like(u)], axis=-1
-        ).reshape(-1, 3)
+        self._directions = camera_rays(plan.intrinsics)
 
     def _build_atlas(self) -> None:
         """One flat texel array per mip level; tile ``6 s + 2 axis + positive`` of shape ``s``."""
@@ -85,7 +165,7 @@ class SynthRenderer:
             flat = np.concatenate([tile.reshape(-1, 3) for tile in tiles]) if tiles else np.zeros((1, 3), np.uint8)
             self._levels.append((flat, offsets, widths, heights))
 
-    def _cast(self, index: int) -> dict:
+    def _cast(self, index: int, camera_pose: np.ndarray) -> dict:
         import open3d as o3d
 
         scene = o3d.t.geometry.RaycastingScene()
@@ -96,10 +176,9 @@ class SynthRenderer:
             pose = self.plan.object_poses[k, index]
             world = (vertices @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32)
             scene.add_triangles(o3d.core.Tensor(world), o3d.core.Tensor(triangles.astype(np.uint32)))
-        pose = self.plan.camera_poses[index]
-        directions = self._directions @ pose[:3, :3].T
+        directions = self._directions @ camera_pose[:3, :3].T
         rays = np.empty((len(directions), 6), dtype=np.float32)
-        rays[:, :3] = pose[:3, 3]
+        rays[:, :3] = camera_pose[:3, 3]
         rays[:, 3:] = directions
         result = scene.cast_rays(o3d.core.Tensor(rays))
         return {
@@ -107,7 +186,7 @@ class SynthRenderer:
             "geometry_ids": result["geometry_ids"].numpy().astype(np.int64),
             "normals": result["primitive_normals"].numpy().astype(np.float64),
             "directions": directions,
-            "origin": pose[:3, 3],
+            "origin": camera_pose[:3, 3],
         }
 
     def render(self, index: int, depth_noise: bool | None = None, dropout: float | None = None) -> RenderedFrame:
@@ -115,8 +194,17 @@ class SynthRenderer:
         options = self.plan.options
         depth_noise = options.depth_noise if depth_noise is None else depth_noise
         dropout = options.dropout if dropout is None else dropout
+        exact = self.render_exact(index)
+        sensor = sensor_depth_model(exact.depth, exact.grazing, options.seed, index, depth_noise, dropout)
+        return RenderedFrame(exact.color, sensor.image(), exact.depth, exact.labels)
+
+    def render_exact(self, index: int, camera_pose: np.ndarray | None = None) -> ExactFrame:
+        """Colour, exact depth, grazing surfaces and labels of frame ``index``, seen from
+        ``camera_pose`` ``T_w_c`` (default: the plan's camera at that frame)."""
+        options = self.plan.options
         height, width = options.height, options.width
-        cast = self._cast(index)
+        camera_pose = self.plan.camera_poses[index] if camera_pose is None else np.asarray(camera_pose, dtype=float)
+        cast = self._cast(index, camera_pose)
         t_hit, ids = cast["t_hit"], cast["geometry_ids"]
         hit = np.isfinite(t_hit) & (ids >= 0) & (ids < len(self.shapes))
         shape_index = np.where(hit, ids, 0)
@@ -152,9 +240,9 @@ class SynthRenderer:
             labels[rows] = self._labels[sid]
 
         color_image = np.round(np.clip(color, 0.0, 1.0) * 255.0).astype(np.uint8).reshape(height, width, 3)
-        depth_clean = depth_clean.reshape(height, width)
-        depth = self._sensor_depth(index, depth_clean, grazing.reshape(height, width), depth_noise, dropout)
-        return RenderedFrame(color_image, depth, depth_clean, labels.reshape(height, width))
+        return ExactFrame(
+            color_image, depth_clean.reshape(height, width), grazing.reshape(height, width), labels.reshape(height, width)
+        )
 
     def _shading_normals(self, sid: np.ndarray, local: np.ndarray, local_normals: np.ndarray) -> np.ndarray:
         """Exact normals of spheres and cylinder sides (the meshes are faceted)."""
@@ -209,24 +297,3 @@ class SynthRenderer:
                 bottom = texels(start + w) * (1 - fx) + texels(start + w + 1) * fx
                 result[rows] += factor[rows] * (top * (1 - fy) + bottom * fy)
         return result * np.float32(1.0 / 255.0)
-
-    def _sensor_depth(
-        self, index: int, depth_clean: np.ndarray, grazing: np.ndarray, depth_noise: bool, dropout: float
-    ) -> np.ndarray:
-        """Kinect-like depth: axial noise, out-of-range, grazing, edge and random dropouts."""
-        seed = self.plan.options.seed
-        depth = depth_clean.copy()
-        valid = (depth_clean >= MIN_RANGE) & (depth_clean <= MAX_RANGE) & ~grazing
-        if depth_noise:
-            noise = seeded_rng(seed, STREAM_FRAME, index, 0).standard_normal(depth.shape)
-            depth = depth + noise * KINECT_SIGMA_Z_COEFFICIENT * depth_clean**2
-        if dropout > 0.0:
-            valid &= seeded_rng(seed, STREAM_FRAME, index, 1).random(depth.shape) >= dropout
-            # Thin bands along strong depth discontinuities go missing now and then.
-            far = np.where(depth_clean > 0, depth_clean, MAX_RANGE * 2).astype(np.float32)
-            kernel = np.ones((3, 3), np.uint8)
-            jump = cv2.dilate(far, kernel) - cv2.erode(far, kernel)
-            edges = jump > np.maximum(0.05, 0.04 * far)
-            drop = seeded_rng(seed, STREAM_FRAME, index, 2).random(depth.shape) < EDGE_DROP_PROBABILITY
-            valid &= ~(edges & drop)
-        return np.where(valid, depth, 0.0)

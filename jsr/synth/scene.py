@@ -1,7 +1,7 @@
 """The plan of a synthetic sequence: everything except the pixels.
 
-The room and its furniture (:class:`Shape`), the rigid objects on the table top, their
-motion schedule and per-frame poses ``T_w_o``, the hand-held-like camera path ``T_w_c`` and
+The room and its furniture (:class:`Shape`), the rigid objects on the table top and their
+per-frame poses ``T_w_o`` (moved as :mod:`jsr.synth.motion` plans), the hand-held-like camera path ``T_w_c`` and
 the timestamps, gathered in a :class:`ScenePlan` by :func:`build_scene_plan`. The world
 frame is the room frame: z up, floor at z = 0, table centre above the origin.
 """
@@ -16,6 +16,7 @@ import numpy as np
 
 from jsr.geometry import look_at, make_transform, rotation_about_axis
 from jsr.io.camera import CameraIntrinsics
+from jsr.synth.motion import TableTop, plan_object_motion
 from jsr.synth.options import SynthOptions, validate_options
 from jsr.synth.randomness import STREAM_PLAN, seeded_rng
 
@@ -31,7 +32,6 @@ TABLE_SIZE = (1.2, 0.8)
 TABLE_TOP = 0.75
 TABLE_TOP_THICKNESS = 0.04
 TABLE_MARGIN = 0.02
-OBJECT_GAP = 0.03
 
 
 @dataclass(eq=False)
@@ -201,8 +201,9 @@ def _static_shapes(rng: np.random.Generator) -> list[Shape]:
     return shapes
 
 
-def _object_shapes(rng: np.random.Generator, count: int) -> list[Shape]:
-    """Object 1 is a box; further objects alternate cylinder / box."""
+def object_shapes(rng: np.random.Generator, count: int, texture_key_base: int = 1000) -> list[Shape]:
+    """Rigid textured objects 10-30 cm: object 1 is a box; further objects alternate cylinder /
+    box. Object ``k``'s textures are drawn with key ``texture_key_base + k``."""
     scale = 1.0 if count <= 3 else math.sqrt(3.0 / count)
     shapes = []
     for k in range(1, count + 1):
@@ -213,127 +214,28 @@ def _object_shapes(rng: np.random.Generator, count: int) -> list[Shape]:
             diameter = rng.uniform(0.12, 0.18) * scale
             size = (diameter, diameter, rng.uniform(0.15, 0.28) * scale)
             kind = "cylinder"
-        shapes.append(Shape(f"object {k}", kind, size, np.eye(4), k, 0.0025, "object", 1000 + k))
+        shapes.append(Shape(f"object {k}", kind, size, np.eye(4), k, 0.0025, "object", texture_key_base + k))
     return shapes
 
 
-def _footprint_radius(shape: Shape) -> float:
+def footprint_radius(shape: Shape) -> float:
     """Radius of a vertical cylinder containing the object for any rotation about z."""
     if shape.kind == "box":
         return 0.5 * math.hypot(shape.size[0], shape.size[1])
     return shape.radius
 
 
-def _inside_table(x: float, y: float, radius: float) -> bool:
-    return (
-        abs(x) + radius <= TABLE_SIZE[0] / 2 - TABLE_MARGIN
-        and abs(y) + radius <= TABLE_SIZE[1] / 2 - TABLE_MARGIN
-    )
-
-
-def _min_path_distance(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarray) -> float:
-    """Smallest distance between two points moving linearly (same timing) from *0 to *1."""
-    start = a0 - b0
-    velocity = (a1 - a0) - (b1 - b0)
-    speed2 = float(velocity @ velocity)
-    s = 0.0 if speed2 < 1e-18 else float(np.clip(-(start @ velocity) / speed2, 0.0, 1.0))
-    return float(np.linalg.norm(start + s * velocity))
-
-
-def _motion_schedule(options: SynthOptions, rng: np.random.Generator) -> list[tuple[int, int, list[int]]]:
-    """``(start_frame, duration, movers)`` events; movers are 0-based object indices."""
-    count, frames = options.objects, options.frames
-    if options.motion == "static" or count == 0:
-        return []
-    first_rest = max(1, min(10, frames // 4))
-    turns = 1 if options.simultaneous else count
-    period = max(2, min(9, (frames - 1 - first_rest) // turns))
-    duration = 1 if options.motion == "jump" else max(1, min(period - 1, round(0.6 * period)))
-    events, start, turn = [], first_rest, 0
-    while start + duration - 1 <= frames - 1:
-        movers = list(range(count)) if options.simultaneous else [turn % count]
-        events.append((start, duration, movers))
-        step = period + (int(rng.integers(-1, 2)) if period >= 8 else 0)
-        start += step
-        turn += 1
-    return events
-
-
 def _plan_objects(
     options: SynthOptions, shapes: list[Shape], rng: np.random.Generator
 ) -> tuple[np.ndarray, list[list[int]]]:
-    """Per-frame object poses ``(K, N, 4, 4)`` and the frames where each pose changes."""
-    count, frames = len(shapes), options.frames
-    radii = [_footprint_radius(shape) for shape in shapes]
-    heights = [TABLE_TOP + shape.size[2] / 2 for shape in shapes]
-
-    # Initial layout: non-overlapping footprints on the table top.
-    states: list[np.ndarray] = []  # (x, y, yaw)
-    for k in range(count):
-        for _ in range(5000):
-            limit_x = TABLE_SIZE[0] / 2 - TABLE_MARGIN - radii[k]
-            limit_y = TABLE_SIZE[1] / 2 - TABLE_MARGIN - radii[k]
-            x, y = rng.uniform(-limit_x, limit_x), rng.uniform(-limit_y, limit_y)
-            if all(math.hypot(x - s[0], y - s[1]) >= radii[k] + radii[j] + OBJECT_GAP for j, s in enumerate(states)):
-                break
-        else:  # pragma: no cover - sizes are scaled so that this does not happen
-            raise RuntimeError("could not place the objects on the table")
-        states.append(np.array([x, y, rng.uniform(-math.pi, math.pi)]))
-
-    # trajectory[k, f] = (x, y, yaw) of object k at frame f.
-    trajectory = np.zeros((count, frames, 3))
-    for k in range(count):
-        trajectory[k, :] = states[k]
-    smooth = options.motion == "smooth"
-    low, high = (0.08, 0.25) if smooth else (0.05, 0.20)
-    for start, duration, movers in _motion_schedule(options, rng):
-        current = {k: trajectory[k, start - 1].copy() for k in range(count)}
-        targets: dict[int, np.ndarray] = {}
-        for k in movers:
-            origin = current[k]
-            for _ in range(500):
-                distance = rng.uniform(low, high)
-                direction = rng.uniform(-math.pi, math.pi)
-                turn = math.radians(rng.uniform(10.0, 60.0)) * (1 if rng.random() < 0.5 else -1)
-                candidate = origin + np.array([distance * math.cos(direction), distance * math.sin(direction), turn])
-                if not _inside_table(candidate[0], candidate[1], radii[k]):
-                    continue
-                clear = True
-                for j in range(count):
-                    if j == k:
-                        continue
-                    other0 = current[j][:2]
-                    other1 = targets[j][:2] if j in targets else other0
-                    if smooth:
-                        gap = _min_path_distance(origin[:2], candidate[:2], other0, other1)
-                    else:
-                        gap = float(np.linalg.norm(candidate[:2] - other1))
-                    if gap < radii[k] + radii[j] + OBJECT_GAP:
-                        clear = False
-                        break
-                if clear:
-                    targets[k] = candidate
-                    break
-            else:
-                # A crowded table: turn in place (the footprint circle stays where it is).
-                logger.debug("object %d found no free place at frame %d and only turns", k + 1, start)
-                targets[k] = origin + np.array([0.0, 0.0, math.radians(rng.uniform(10.0, 60.0))])
-        for k, target in targets.items():
-            origin = current[k]
-            for i in range(duration):
-                s = (i + 1) / duration
-                eased = s * s * (3.0 - 2.0 * s)
-                trajectory[k, start + i] = origin + eased * (target - origin)
-            trajectory[k, start + duration :] = target
-
-    poses = np.zeros((count, frames, 4, 4))
-    moving: list[list[int]] = []
-    for k in range(count):
-        for f in range(frames):
+    """Per-frame object poses ``(K, N, 4, 4)`` on the table top and the frames where each pose changes."""
+    radii = [footprint_radius(shape) for shape in shapes]
+    trajectory, moving = plan_object_motion(options, radii, TableTop(TABLE_SIZE, TABLE_MARGIN, radii), rng)
+    poses = np.zeros((len(shapes), options.frames, 4, 4))
+    for k, shape in enumerate(shapes):
+        for f in range(options.frames):
             x, y, yaw = trajectory[k, f]
-            poses[k, f] = _pose(x, y, heights[k], yaw)
-        changed = np.any(np.abs(np.diff(trajectory[k], axis=0)) > 0.0, axis=1)
-        moving.append([int(f) + 1 for f in np.flatnonzero(changed)])
+            poses[k, f] = _pose(x, y, TABLE_TOP + shape.size[2] / 2, yaw)
     return poses, moving
 
 
@@ -375,8 +277,8 @@ def build_scene_plan(options: SynthOptions) -> ScenePlan:
     options = validate_options(options)
     layout_rng, object_rng, motion_rng, camera_rng = (seeded_rng(options.seed, STREAM_PLAN, i) for i in range(4))
     static_shapes = _static_shapes(layout_rng)
-    object_shapes = _object_shapes(object_rng, options.objects)
-    object_poses, moving = _plan_objects(options, object_shapes, motion_rng)
+    objects = object_shapes(object_rng, options.objects)
+    object_poses, moving = _plan_objects(options, objects, motion_rng)
     still = [k + 1 for k, frames in enumerate(moving) if not frames]
     if options.motion != "static" and still:
         logger.warning(
@@ -391,9 +293,9 @@ def build_scene_plan(options: SynthOptions) -> ScenePlan:
         timestamps=np.array([float(name) for name in names]),
         names=names,
         camera_poses=_camera_trajectory(options.frames, camera_rng),
-        object_poses=object_poses.reshape(len(object_shapes), options.frames, 4, 4),
+        object_poses=object_poses.reshape(len(objects), options.frames, 4, 4),
         static_shapes=static_shapes,
-        object_shapes=object_shapes,
+        object_shapes=objects,
         light_direction=light / np.linalg.norm(light),
         moving_frames=moving,
     )

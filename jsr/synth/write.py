@@ -23,7 +23,7 @@ from jsr.io.camera import write_camera_yaml
 from jsr.io.trajectory import write_tum_trajectory
 from jsr.synth.options import SynthOptions, validate_options
 from jsr.synth.render import SynthRenderer
-from jsr.synth.scene import DEPTH_SCALE, TABLE_TOP, build_scene_plan
+from jsr.synth.scene import DEPTH_SCALE, TABLE_TOP, ScenePlan, build_scene_plan
 
 logger = logging.getLogger(__name__)
 
@@ -31,13 +31,14 @@ JPEG_QUALITY = 95
 
 GENERATED_FILES = ("rgb.txt", "depth.txt", "groundtruth.txt", "camera.yaml", "synth.yaml")
 GENERATED_FOLDERS = ("rgb", "depth", "labels", "objects")
-_GENERATED_IMAGE = re.compile(r"^\.?\d+\.\d{6}(\.[^.]+)?\.(png|jpg)$")
+# Timestamp names (a composite keeps its background's, e.g. 1548339819.87426), and their temporary files.
+_GENERATED_IMAGE = re.compile(r"^\.?\d+(\.\d+)?(\.[^.]+)?\.(png|jpg)$")
 _GENERATED_OBJECT = re.compile(r"^\.?object_\d+(\.[^.]+)?\.txt$")
 
 
-def encode_depth(depth: np.ndarray) -> np.ndarray:
-    """Metres to the 16-bit PNG values (5000 per metre, 0 = invalid)."""
-    return np.clip(np.round(np.asarray(depth) * DEPTH_SCALE), 0, 65535).astype(np.uint16)
+def encode_depth(depth: np.ndarray, depth_scale: float = DEPTH_SCALE) -> np.ndarray:
+    """Metres to the 16-bit PNG values (``depth_scale`` per metre, 5000 by default; 0 = invalid)."""
+    return np.clip(np.round(np.asarray(depth) * depth_scale), 0, 65535).astype(np.uint16)
 
 
 def _is_generated(path: Path, root: Path) -> bool:
@@ -61,7 +62,9 @@ def check_output_folder(out_dir: Path, overwrite: bool) -> None:
         raise OutputError(f"{out_dir} is not empty; pass --overwrite to replace it or choose another folder")
 
 
-def _prepare_output(out_dir: Path, overwrite: bool) -> None:
+def prepare_output(out_dir: Path, overwrite: bool) -> None:
+    """Make ``out_dir`` ready for a sequence: checked as :func:`check_output_folder` does; with
+    ``overwrite``, the files jsr synth writes are removed (others are kept)."""
     check_output_folder(out_dir, overwrite)
     if out_dir.is_dir() and any(out_dir.iterdir()):
         removed = 0
@@ -83,20 +86,36 @@ def _prepare_output(out_dir: Path, overwrite: bool) -> None:
         raise OutputError(f"cannot create {out_dir}: {error.strerror}; choose a writable folder") from None
 
 
-def _write_image(path: Path, image: np.ndarray, params: tuple[int, ...] = ()) -> None:
+def write_image(path: Path, image: np.ndarray, image_format: str) -> None:
+    """Write an image atomically: ``png`` (compression 6) or ``jpg`` (quality ``JPEG_QUALITY``);
+    ``image`` is BGR colour, or one channel (uint8 labels, uint16 depth)."""
+    params = (cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY) if image_format == "jpg" else (cv2.IMWRITE_PNG_COMPRESSION, 6)
     with atomic_path(path) as temporary:
         if not cv2.imwrite(str(temporary), image, list(params)):
             raise OutputError(f"cannot write {path}; check the free disk space and permissions")
 
 
-def _image_list_text(kind: str, names: list[str], folder: str, suffix: str, options: SynthOptions) -> str:
-    lines = [
-        f"# {kind} images",
-        f"# synthetic sequence by jsr synth (seed {options.seed})",
-        "# timestamp filename",
-    ]
-    lines += [f"{name} {folder}/{name}.{suffix}" for name in names]
+def image_list_text(
+    kind: str, timestamps: list[str], names: list[str], folder: str, suffix: str, header: str
+) -> str:
+    """A TUM ``rgb.txt``/``depth.txt``: ``timestamp folder/name.suffix`` lines under ``header``."""
+    lines = [f"# {kind} images", f"# {header}", "# timestamp filename"]
+    lines += [f"{timestamp} {folder}/{name}.{suffix}" for timestamp, name in zip(timestamps, names)]
     return "\n".join(lines) + "\n"
+
+
+def object_records(plan: ScenePlan) -> list[dict]:
+    """``synth.yaml``'s description of each object: id, shape, size, when it moves."""
+    return [
+        {
+            "id": k + 1,
+            "shape": shape.kind,
+            "size": [round(float(s), 6) for s in shape.size],
+            "first_motion_frame": plan.first_motion_frames[k],
+            "moving_frames": plan.moving_frames[k],
+        }
+        for k, shape in enumerate(plan.object_shapes)
+    ]
 
 
 def generate_sequence(
@@ -116,12 +135,10 @@ def generate_sequence(
     started = time.perf_counter()
     options = validate_options(options)
     out_dir = Path(out_dir)
-    _prepare_output(out_dir, overwrite)
+    prepare_output(out_dir, overwrite)
     plan = build_scene_plan(options)
     renderer = SynthRenderer(plan)
     suffix = options.image_format
-    colour_params = (cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY) if suffix == "jpg" else (cv2.IMWRITE_PNG_COMPRESSION, 6)
-    png_params = (cv2.IMWRITE_PNG_COMPRESSION, 6)
 
     write_camera_yaml(out_dir / "camera.yaml", plan.intrinsics)
     metadata = {
@@ -130,16 +147,7 @@ def generate_sequence(
         "options": asdict(options),
         "world_frame": "room frame, z up, floor at z = 0, table top at z = %.2f" % TABLE_TOP,
         "labels": "0 static scene, k object k",
-        "objects": [
-            {
-                "id": k + 1,
-                "shape": shape.kind,
-                "size": [round(float(s), 6) for s in shape.size],
-                "first_motion_frame": plan.first_motion_frames[k],
-                "moving_frames": plan.moving_frames[k],
-            }
-            for k, shape in enumerate(plan.object_shapes)
-        ],
+        "objects": object_records(plan),
     }
     import yaml
 
@@ -147,9 +155,9 @@ def generate_sequence(
 
     for index, name in enumerate(plan.names):
         frame = renderer.render(index)
-        _write_image(out_dir / "rgb" / f"{name}.{suffix}", frame.color[:, :, ::-1], colour_params)
-        _write_image(out_dir / "depth" / f"{name}.png", encode_depth(frame.depth), png_params)
-        _write_image(out_dir / "labels" / f"{name}.png", frame.labels, png_params)
+        write_image(out_dir / "rgb" / f"{name}.{suffix}", frame.color[:, :, ::-1], suffix)
+        write_image(out_dir / "depth" / f"{name}.png", encode_depth(frame.depth), "png")
+        write_image(out_dir / "labels" / f"{name}.png", frame.labels, "png")
         if progress is not None:
             progress(index + 1, options.frames)
 
@@ -164,8 +172,8 @@ def generate_sequence(
             header + f"\nobject {k + 1}: object-to-world T_w_o, origin at the object centre",
         )
     # The lists come last: a sequence is only readable once every frame is on disk.
-    atomic_write_text(out_dir / "depth.txt", _image_list_text("depth", plan.names, "depth", "png", options))
-    atomic_write_text(out_dir / "rgb.txt", _image_list_text("colour", plan.names, "rgb", suffix, options))
+    atomic_write_text(out_dir / "depth.txt", image_list_text("depth", plan.names, plan.names, "depth", "png", header))
+    atomic_write_text(out_dir / "rgb.txt", image_list_text("colour", plan.names, plan.names, "rgb", suffix, header))
 
     seconds = time.perf_counter() - started
     logger.info("%s: %d synthetic frames written in %.1f s", out_dir, options.frames, seconds)
