@@ -8,7 +8,8 @@ digests of the files a refactor must not change: ``camera.tum``, ``landmarks.csv
 under ``objects/`` and ``masks/`` (``REFERENCE_DIR/<sequence name>.json``). ``compare`` runs
 the same again and lists every file whose digest differs, or that one run has and the other
 not; it exits 1 when anything differs. Extra ``jsr reconstruct`` options go after ``--``
-(for example ``-- --max-frames 60``); they are recorded and must be the same in both runs.
+(for example ``-- --max-frames 60``); they are recorded and must be the same in both runs,
+unless ``--other-options`` is given (to check that a new switch, turned off, changes nothing).
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ def main() -> int:
     parser.add_argument("reference", type=Path)
     parser.add_argument("sequences", nargs="+", type=Path)
     parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--other-options", action="store_true", help="compare with a record made with other options")
     arguments, options = parser.parse_known_args()
     options = [o for o in options if o != "--"]
     arguments.reference.mkdir(parents=True, exist_ok=True)
@@ -65,7 +67,7 @@ def main() -> int:
             print(f"{sequence.name}: {len(found)} files recorded")
             continue
         reference = json.loads(record.read_text())
-        if reference["options"] != options:
+        if reference["options"] != options and not arguments.other_options:
             print(f"{sequence.name}: recorded with options {reference['options']}, not {options}")
             differing += 1
             continue
