@@ -148,6 +148,10 @@ class DetectionConfig:
     split_motion_distance: float = 0.06
     min_object_points: int = 15
     partial_outlier_ratio: float = 0.3
+    confirm_frames: int = 3
+    confirm_window: int = 6
+    confirm_significance: float = 0.001
+    dynamic_margin_px: int = 8
 
 
 @dataclass
@@ -194,6 +198,8 @@ class ObjectsConfig:
     free_space_min_pixels: int = 400
     free_space_share: float = 0.6
     free_space_min_segment_pixels: int = 1000
+    dormant_after_frames: int = 15
+    reidentify_maps: int = 3
 
 
 @dataclass
@@ -310,6 +316,12 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "detection.min_motion_degrees": (lambda v: v >= 0, "at least 0"),
     "detection.significance": (lambda v: 0 < v <= 1, "in (0, 1] (1: no test)"),
     "detection.min_object_points": (lambda v: v >= 3, "at least 3"),
+    "detection.confirm_frames": (lambda v: v >= 0, "at least 0 (0: a detected region is an object at once)"),
+    "detection.confirm_window": (lambda v: v >= 1, "at least 1"),
+    "detection.confirm_significance": (lambda v: 0 < v < 1, "in (0, 1)"),
+    "detection.dynamic_margin_px": (lambda v: v >= 0, "at least 0"),
+    "objects.dormant_after_frames": (lambda v: v >= 1, "at least 1"),
+    "objects.reidentify_maps": (lambda v: v >= 1, "at least 1"),
     "objects.retire_after_outliers": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.retire_after_vacated": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.vacated_cluster_size": (lambda v: v >= 0, "at least 0 (0: no cluster needed)"),

@@ -116,7 +116,8 @@ def merge_duplicates(state: SceneState, ctx: FrameContext) -> None:
     """Two object maps that explain the same measurements in one frame are one object (its
     first map saw a side the second never did, e.g. before a jump that turned it): the
     newer map is merged into the older one (``objects.merge_maps``); ``ctx.outcomes`` loses
-    the merged map's registration."""
+    the merged map's registration. The older map stays, or the object when the other is a
+    candidate (:func:`keeps`)."""
     config = state.config.objects
     successful = [o for o in ctx.outcomes if o.success]
     if not config.merge_maps or len(successful) < 2:
@@ -133,10 +134,11 @@ def merge_duplicates(state: SceneState, ctx: FrameContext) -> None:
             shared = int((inliers[target_id] & inliers[source_id]).sum())
             if shared < config.merge_min_shared_inliers:
                 continue
-            merge_maps(state, target.object_map, source.object_map, target.T_o_c @ np.linalg.inv(source.T_o_c),
+            keep, gone = (target, source) if keeps(target.object_map, source.object_map) else (source, target)
+            merge_maps(state, keep.object_map, gone.object_map, keep.T_o_c @ np.linalg.inv(gone.T_o_c),
                        measurements.frame_index, f"{shared} shared inliers")
-            inliers[target_id] |= inliers[source_id]
-            merged.add(source_id)
+            inliers[keep.object_map.object_id] |= inliers[gone.object_map.object_id]
+            merged.add(gone.object_map.object_id)
     ctx.outcomes = [o for o in ctx.outcomes if o.object_map.object_id not in merged]
 
 
@@ -154,7 +156,7 @@ def merge_registered_maps(state: SceneState, ctx: FrameContext, object_map: Obje
             continue
         if other.last_tracked_frame == frame_index:
             continue  # both seen in this frame: merge_duplicates compared their inliers
-        target, source = (other, object_map) if other.object_id < object_map.object_id else (object_map, other)
+        target, source = (other, object_map) if keeps(other, object_map) else (object_map, other)
         result = register_maps(target, source, state.config, state.streams.objects)
         if result is None or not result.success or result.num_inliers < config.map_merge_min_inliers:
             continue
@@ -168,6 +170,14 @@ def merge_registered_maps(state: SceneState, ctx: FrameContext, object_map: Obje
                 if ids is report.objects_tracked and target.object_id not in ids:
                     ids.append(target.object_id)
         object_map = target
+
+
+def keeps(first: ObjectMap, second: ObjectMap) -> bool:
+    """Whether ``first`` is the map that stays when two maps of one object are merged: a
+    confirmed object rather than a candidate, else the older map."""
+    if first.confirmed != second.confirmed:
+        return first.confirmed
+    return first.object_id < second.object_id
 
 
 def merge_maps(state: SceneState, target: ObjectMap, source: ObjectMap, T_target_source: np.ndarray,

@@ -12,13 +12,13 @@ import numpy as np
 from jsr.config import Config
 from jsr.pipeline.association import (MatchedFrame, inlier_landmarks, inlier_plane_landmarks, sample_colors)
 from jsr.pipeline.classify import segment_of_planes
-from jsr.pipeline.maps import Keyframe, ObjectMap
+from jsr.pipeline.maps import Candidacy, Keyframe, ObjectMap
 from jsr.pipeline.measurements import FrameMeasurements, PointMeasurements
 from jsr.pipeline.object_registration import ObjectTrackingResult
 from jsr.pipeline.ownership import ownership_image
 from jsr.pipeline.correspondences import RegistrationResult
 from jsr.pipeline.state import MAX_OBJECT_ID, FrameAssignment, FrameContext, SceneState
-from jsr.pipeline.static_hygiene import holding_back, without_suspects
+from jsr.pipeline.static_hygiene import holding_back, without_dynamic, without_suspects
 from jsr.pipeline.vlad import VladVocabulary
 
 logger = logging.getLogger(__name__)
@@ -38,7 +38,7 @@ def initialise(state: SceneState, ctx: FrameContext, init_object_mask: np.ndarra
     if init_object_mask is not None:
         object_segments = segments_in_mask(measurements, init_object_mask)
         if object_segments:
-            object_map = start_object(state, ctx, object_segments, pose)
+            object_map = start_object(state, ctx, object_segments, pose, candidate=False)
             if object_map is not None:
                 report.objects_created.append(object_map.object_id)
                 report.objects_tracked.append(object_map.object_id)
@@ -73,10 +73,14 @@ def segments_in_mask(measurements: FrameMeasurements, mask: np.ndarray) -> list[
     return np.flatnonzero(inside >= 0.5 * total).tolist()
 
 
-def start_object(state: SceneState, ctx: FrameContext, segment_ids: list[int], T_w_c: np.ndarray) -> ObjectMap | None:
+def start_object(state: SceneState, ctx: FrameContext, segment_ids: list[int], T_w_c: np.ndarray,
+                 candidate: bool = True, evidence_landmarks: np.ndarray | None = None) -> ObjectMap | None:
     """A new object map from the segments ``segment_ids`` of the frame (their features no
     object has), its frame this camera frame (pose ``T_w_c``); None when they hold too few 3D
-    points or no id is left. ``ctx.assignment`` gives them to it."""
+    points or no id is left. ``ctx.assignment`` gives them to it. ``candidate``: it must be
+    confirmed over the next frames (:mod:`~jsr.pipeline.confirmation`; not with
+    ``detection.confirm_frames`` 0) before it is an object; ``evidence_landmarks``: the static
+    landmarks that showed it moved (its outliers, those displaced in it), tested again then."""
     frame, measurements, assignment = ctx.frame, ctx.measurements, ctx.assignment
     points, planes = measurements.points, measurements.planes
     points_in, planes_in = features_in_segments(measurements, segment_ids)
@@ -90,7 +94,11 @@ def start_object(state: SceneState, ctx: FrameContext, segment_ids: list[int], T
         return None
     object_id = state.next_object_id  # ids are never reused, also after merges
     state.next_object_id += 1
-    object_map = ObjectMap(object_id, frame.index)
+    on_probation = candidate and state.config.detection.confirm_frames > 0
+    candidacy = None
+    if on_probation:
+        candidacy = Candidacy(frame.index, np.zeros(0, np.int64) if evidence_landmarks is None else evidence_landmarks)
+    object_map = ObjectMap(object_id, frame.index, candidacy)
     keyframe = object_map.add_keyframe(
         frame.index, frame.timestamp, np.eye(4), points, point_ids, np.full(len(point_ids), -1),
         sample_colors(frame, points.pixels[point_ids]), planes, plane_ids, np.full(len(plane_ids), -1))
@@ -104,8 +112,8 @@ def start_object(state: SceneState, ctx: FrameContext, segment_ids: list[int], T
     object_map.last_T_w_o = np.array(T_w_c, dtype=float)
     object_map.record_pose(frame.index, frame.timestamp, object_map.last_T_w_o)
     object_map.frames_tracked = 1
-    logger.info("frame %d: object %d detected (%d segments, %d points, %d planes)", frame.index, object_id,
-                len(segment_ids), len(point_ids), len(plane_ids))
+    logger.info("frame %d: %s %d detected (%d segments, %d points, %d planes)", frame.index,
+                "candidate" if on_probation else "object", object_id, len(segment_ids), len(point_ids), len(plane_ids))
     return object_map
 
 
@@ -146,19 +154,23 @@ def update_static(state: SceneState, ctx: FrameContext) -> None:
     """Add a keyframe to the static map (its own measurements only) when the pose is new."""
     frame, measurements, report, static, assignment = ctx.frame, ctx.measurements, ctx.report, ctx.static, ctx.assignment
     pose = report.T_w_c
-    if not (static.bridged or state.static_map.needs_keyframe(pose, state.config.keyframes)):
+    if not (static.bridged or ctx.force_static_keyframe
+            or state.static_map.needs_keyframe(pose, state.config.keyframes)):
         return
     points, planes = measurements.points, measurements.planes
     static_points = np.flatnonzero(assignment.point_owner == 0)
     static_planes = np.flatnonzero(assignment.plane_owner == 0)
     if holding_back(state.config, ctx) and not static.bridged:
         static_points, static_planes = without_suspects(ctx, static_points, static_planes)
+    static_points, static_planes = without_dynamic(ctx, static_points, static_planes)
     if static.bridged:  # matched to the previous frame, not to the map: all measurements are new
         landmark_of = np.full(len(points), -1, dtype=np.int64)
         plane_landmark_of = np.full(len(planes), -1, dtype=np.int64)
     else:
         landmark_of = inlier_landmarks(static.matched, static.result, len(points))
         plane_landmark_of = inlier_plane_landmarks(static.matched, static.result, len(planes))
+    if ctx.given_to_static is not None:  # landmarks a dissolved candidate gave: observed here
+        landmark_of = np.where(landmark_of < 0, ctx.given_to_static, landmark_of)
     state.static_map.add_keyframe(
         frame.index, frame.timestamp, pose, points, static_points, landmark_of[static_points],
         sample_colors(frame, points.pixels[static_points]), planes, static_planes,
@@ -173,7 +185,8 @@ def remember_depth(state: SceneState, ctx: FrameContext) -> None:
     """Keep the static pixels' depth of the new static keyframe (subsampled) for free-space tests."""
     if not (state.config.objects.enabled and state.config.objects.free_space_detection):
         return
-    unknown = ownership_image(ctx.measurements, ctx.assignment) > 0  # where objects were, nothing is known ...
+    # where objects (and people) were, nothing is known about free space ...
+    unknown = ownership_image(ctx.measurements, ctx.assignment, ctx.dynamic) > 0
     if holding_back(state.config, ctx):  # ... nor where something may have moved to (see without_suspects)
         unknown |= np.isin(ctx.measurements.segments.label_image, ctx.suspects)
     state.free_space.remember(state.static_map.keyframes[-1], ctx.frame.depth, unknown)
@@ -192,15 +205,19 @@ def update_object(state: SceneState, ctx: FrameContext, outcome: ObjectTrackingR
     matched, result = best
     T_o_c = result.transformation
     object_map.lost = False
+    object_map.dormant = False
     object_map.last_T_o_c = T_o_c
     object_map.last_tracked_frame = frame.index
     object_map.frames_tracked += 1
-    report.objects_tracked.append(object_map.object_id)
+    if object_map.confirmed:
+        report.objects_tracked.append(object_map.object_id)
     if report.tracked:
         T_w_o = report.T_w_c @ np.linalg.inv(T_o_c)
         object_map.last_T_w_o = T_w_o
         object_map.last_pose_registered = not outcome.pose_from_surface
         object_map.record_pose(frame.index, frame.timestamp, T_w_o)
+    if not object_map.confirmed:
+        return False  # a candidate keeps the model it was detected with: is that one rigid body?
     points, planes = measurements.points, measurements.planes
     own_points = np.flatnonzero(assignment.point_owner == object_map.object_id)
     landmark_of = inlier_landmarks(matched, result, len(points))

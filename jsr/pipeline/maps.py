@@ -306,6 +306,29 @@ class Map:
         return keyframe
 
 
+@dataclass
+class Candidacy:
+    """An object map on probation: the evidence, over the frames after the one that detected
+    it (``born``), that its region moved relative to the static scene as one rigid body
+    (:mod:`jsr.pipeline.confirmation`).
+
+    ``evidence_landmarks``: the static landmarks that showed at detection that the region moved
+    (matched as its outliers, or displaced where it lies). ``evidence``: summed log-likelihood
+    ratios (static map against object map explanation of the measurements both matched) over the
+    ``evidence_frames`` that gave any; ``motion_frames``: frames in which some test rejected that
+    the static map explains the region; ``rigid_frames`` and ``nonrigid_frames``: frames in which
+    its registration did, or did not, explain its region as one rigid body.
+    """
+
+    born: int
+    evidence_landmarks: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    evidence: float = 0.0
+    evidence_frames: int = 0
+    motion_frames: int = 0
+    rigid_frames: int = 0
+    nonrigid_frames: int = 0
+
+
 class ObjectMap(Map):
     """The map of one moving object (landmarks in the object frame).
 
@@ -315,9 +338,12 @@ class ObjectMap(Map):
     ``trajectory`` lists ``(frame_index, timestamp, T_w_o)`` of the frames it was tracked in;
     ``trajectory_anchors[frame_index]`` the map's latest keyframe when that frame was tracked
     and its ``T_map_cam`` then ``(4, 4)``: how far bundle adjustment moved the map since.
+    ``candidacy``: while not None, the map is a candidate that must still be confirmed (it
+    becomes an object) or is dissolved; ``dormant``: not seen for a while, so it is no longer
+    registered every frame, only tried when a new moving region could be it.
     """
 
-    def __init__(self, object_id: int, created_at_frame: int):
+    def __init__(self, object_id: int, created_at_frame: int, candidacy: Candidacy | None = None):
         super().__init__(f"object_{object_id}")
         self.object_id = object_id
         self.created_at_frame = created_at_frame
@@ -332,6 +358,13 @@ class ObjectMap(Map):
         self.trajectory: list[tuple[int, float, np.ndarray]] = []
         self.trajectory_anchors: dict[int, tuple[Keyframe, np.ndarray]] = {}
         self.frames_tracked = 0
+        self.candidacy = candidacy
+        self.dormant = False
+
+    @property
+    def confirmed(self) -> bool:
+        """An object: its candidacy, if it had one, ended in confirmation."""
+        return self.candidacy is None
 
     def record_pose(self, frame_index: int, timestamp: float, T_w_o: np.ndarray) -> None:
         """Append ``T_w_o`` ``(4, 4)`` to the trajectory, anchored to the latest keyframe as it

@@ -26,7 +26,7 @@ from jsr.pipeline.region_growth import UNSUPPORTED_STATIC_SHARE, grow
 from jsr.pipeline.region_motion import mostly_in_place, not_in_place, rigidly_moved, split_by_motion
 from jsr.pipeline.correspondences import depth_thresholds
 from jsr.pipeline.reidentification import reidentify
-from jsr.pipeline.state import FrameContext, SceneState
+from jsr.pipeline.state import DYNAMIC, FrameContext, SceneState
 from jsr.pipeline.static_tracking import static_inlier_landmarks
 
 logger = logging.getLogger(__name__)
@@ -88,9 +88,11 @@ def detect_moving_regions(state: SceneState, ctx: FrameContext) -> None:
     # degrees had all 7 outlier landmarks found on look-alikes of its own texture, but 45
     # displaced ones (synth_two seed 3, frame 19; detected 3 frames later without them).
     by_displacement = []
+    displaced_in = {}  # segment -> the static landmarks displaced in its group (a candidate's evidence)
     for group, displaced in displaced_landmarks(state, ctx, inliers):
         if not mostly_in_place(state, ctx, group, inliers, config.detection.min_segment_features, also=displaced):
             by_displacement.extend(group)
+            displaced_in.update({segment: displaced for segment in group})
     moving = sorted(set(by_outliers) | set(by_free_space) | set(by_displacement) | set(where_lost))
     moving = [s for s in moving if assignment.segment_owner[s] == 0]
     if not moving:
@@ -106,19 +108,63 @@ def detect_moving_regions(state: SceneState, ctx: FrameContext) -> None:
         group = grow(state, ctx, group, inliers, owner)
         group_points = np.concatenate([segments.point_indices[s] for s in group]).astype(np.int64)
         group_points = group_points[assignment.point_owner[group_points] == 0]
+        if moved_as_before(state, ctx, group):
+            continue
         if int(points.has_depth[group_points].sum()) < config.detection.min_object_points:
             # a small object carries few half-resolution keypoints: look closer at it in
             # the next frames (features.object_detail) and start it once it has enough
-            state.memory.candidate_boxes.append((pixel_box(np.isin(segments.label_image, group)),
-                                                 frame.index + CANDIDATE_DETAIL_FRAMES))
+            until = frame.index + CANDIDATE_DETAIL_FRAMES
+            state.memory.candidate_boxes.append((pixel_box(np.isin(segments.label_image, group)), until))
+            displaced = [displaced_in[s] for s in group if s in displaced_in]
+            if displaced:  # its evidence stays for as long
+                state.memory.pending_displaced.append((np.unique(np.concatenate(displaced)), until))
             ctx.suspects.extend(group)  # nor does its new place enter the static map
             continue
         if config.objects.reidentify and reidentify(state, ctx, group, group_points, by_id):
             continue
-        object_map = start_object(state, ctx, group, report.T_w_c)
-        if object_map is not None:
+        evidence = np.union1d(outlier_landmarks(ctx, group, inliers),
+                              np.concatenate([displaced_in.get(s, np.zeros(0, np.int64)) for s in group]))
+        object_map = start_object(state, ctx, group, report.T_w_c, evidence_landmarks=evidence)
+        if object_map is not None and object_map.confirmed:  # (a candidate is reported once confirmed)
             report.objects_created.append(object_map.object_id)
             report.objects_tracked.append(object_map.object_id)
+
+
+def outlier_landmarks(ctx: FrameContext, group: list[int], static_inliers: np.ndarray) -> np.ndarray:
+    """Sorted ids of the static landmarks matched as outliers by the point measurements of the
+    segments ``group`` (``static_inliers`` ``(N,)`` bool)."""
+    matched = ctx.static.matched
+    point_segment = ctx.measurements.segments.segment_of_points(len(ctx.measurements.points))
+    rows = np.isin(point_segment[matched.point_measurements], group) & ~static_inliers[matched.point_measurements]
+    return np.unique(matched.point_landmarks[rows])
+
+
+def moved_as_before(state: SceneState, ctx: FrameContext, group: list[int]) -> bool:
+    """Whether the moving region ``group`` continues a motion no rigid map explains: at least
+    half of its pixels were dynamic in the previous frame (a person walking on), or belonged to
+    a candidate, which its registration in this frame does not explain (not found, or this part
+    of it moved otherwise: a person's limb; ``ctx.unexplained``, weighed by
+    :mod:`~jsr.pipeline.confirmation`). Such a region is dynamic in this frame
+    (``ctx.dynamic``), and starts no map."""
+    previous = state.memory.previous_mask
+    if previous is None:
+        return False
+    in_group = np.isin(ctx.measurements.segments.label_image, group)
+    before = previous[in_group]
+    if not len(before):
+        return False
+    owners, counts = np.unique(before[before > 0], return_counts=True)
+    if not len(owners) or counts.max() < 0.5 * len(before):
+        return False
+    owner = int(owners[np.argmax(counts)])
+    if owner == DYNAMIC:
+        ctx.dynamic.extend(group)
+        return True
+    if not any(m.object_id == owner and not m.confirmed for m in state.object_maps):
+        return False
+    ctx.unexplained.add(owner)
+    ctx.dynamic.extend(group)
+    return True
 
 
 def where_just_lost(state: SceneState, ctx: FrameContext, candidates: list[int]) -> list[int]:
@@ -183,7 +229,11 @@ def displaced_landmarks(state: SceneState, ctx: FrameContext, static_inliers: np
     config = state.config.detection
     frame, measurements, static, T_w_c = ctx.frame, ctx.measurements, ctx.static, ctx.T_w_c
     previous = state.memory.previous_static_inliers
-    if config.displaced_share <= 0 or previous is None or not len(previous):
+    if config.displaced_share <= 0 or previous is None:
+        return []
+    pending = [ids for ids, _ in state.memory.pending_displaced]
+    previous = np.union1d(previous, np.concatenate(pending)) if pending else previous
+    if not len(previous):
         return []
     landmarks = previous[state.static_map.points.active[previous]]
     camera_points = transform_points(invert_transform(T_w_c), state.static_map.points.positions[landmarks])

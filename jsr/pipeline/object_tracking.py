@@ -1,5 +1,8 @@
 """Object tracking: every object map registered against the frame (Caccamo et al. 2017,
-Section 2.2), predicted where the object was, and kept there while it rests.
+Section 2.2), predicted where the object was, and kept there while it rests. An object not seen
+for ``objects.dormant_after_frames`` frames is dormant: it is no longer registered every frame
+(the cost of a frame does not grow with the number of maps); re-identification tries it when a
+new moving region could be it.
 """
 
 from __future__ import annotations
@@ -19,8 +22,9 @@ logger = logging.getLogger(__name__)
 
 
 def register_objects(state: SceneState, ctx: FrameContext) -> None:
-    """Frame- and segment-based registration of the frame against every object map: sets
-    ``ctx.outcomes`` (one per map) and marks the maps not found as lost."""
+    """Frame- and segment-based registration of the frame against every object map that is not
+    dormant: sets ``ctx.outcomes`` (one per map registered) and marks the maps not found as
+    lost, and those lost for ``objects.dormant_after_frames`` frames as dormant."""
     if not state.object_maps:
         return
     measurements, report = ctx.measurements, ctx.report
@@ -30,6 +34,13 @@ def register_objects(state: SceneState, ctx: FrameContext) -> None:
     skip = static_segments(state.config, ctx)
     outcomes = []
     for object_map in state.object_maps:
+        if object_map.confirmed and not object_map.dormant and \
+                measurements.frame_index - object_map.last_tracked_frame > state.config.objects.dormant_after_frames:
+            object_map.dormant = True
+            logger.info("frame %d: object %d dormant (not seen since frame %d)", measurements.frame_index,
+                        object_map.object_id, object_map.last_tracked_frame)
+        if object_map.dormant:
+            continue
         predicted = object_map.last_T_o_c
         where_it_was = None  # T_o_c: its last world pose seen from this camera
         if report.tracked and object_map.last_T_w_o is not None:

@@ -9,18 +9,25 @@ import cv2
 import numpy as np
 
 from jsr.pipeline.measurements import FrameMeasurements
-from jsr.pipeline.state import FrameAssignment, SceneState
+from jsr.pipeline.maps import ObjectMap
+from jsr.pipeline.state import DYNAMIC, FrameAssignment, SceneState
 
 OWNERSHIP_FILL_RADIUS = 3  # px at 640 wide: pixels in no segment (no depth) take the owner of most labelled neighbours
 
 
-def ownership_image(measurements: FrameMeasurements, assignment: FrameAssignment) -> np.ndarray:
-    """``(H, W)`` uint8: 0 static, K for the pixels of the segments and features of object K."""
+def ownership_image(measurements: FrameMeasurements, assignment: FrameAssignment,
+                    dynamic: list[int] | tuple = ()) -> np.ndarray:
+    """``(H, W)`` uint8: 0 static, K for the pixels of the segments and features of object (or
+    candidate) K, DYNAMIC for the segments ``dynamic`` that no map owns."""
     labels = measurements.segments.label_image
     image = np.zeros(labels.shape, dtype=np.uint8)
-    if not np.any(assignment.segment_owner > 0) and not np.any(assignment.point_owner > 0):
+    segment_owner = assignment.segment_owner.copy()
+    if len(dynamic):
+        dynamic = np.asarray(dynamic, dtype=np.int64)
+        segment_owner[dynamic[segment_owner[dynamic] == 0]] = DYNAMIC
+    if not np.any(segment_owner > 0) and not np.any(assignment.point_owner > 0):
         return image
-    owner_of_label = np.append(assignment.segment_owner, 0).astype(np.uint8)  # label -1 -> static
+    owner_of_label = np.append(segment_owner, 0).astype(np.uint8)  # label -1 -> static
     image = owner_of_label[np.where(labels >= 0, labels, len(assignment.segment_owner))]
     if assignment.not_object_pixels is not None:
         image[assignment.not_object_pixels] = 0
@@ -32,6 +39,15 @@ def ownership_image(measurements: FrameMeasurements, assignment: FrameAssignment
         u, v = np.clip(pixels[:, 0], 0, width - 1), np.clip(pixels[:, 1], 0, height - 1)
         image[v, u] = assignment.point_owner[object_points].astype(np.uint8)
     return image
+
+
+def published_mask(ownership: np.ndarray, object_maps: list[ObjectMap]) -> np.ndarray:
+    """The ownership image ``(H, W)`` uint8 as ``masks/`` shows it: the pixels of candidates
+    not yet confirmed are DYNAMIC (moving, not modelled yet), as are non-rigid regions."""
+    candidates = [m.object_id for m in object_maps if not m.confirmed]
+    if not candidates:
+        return ownership
+    return np.where(np.isin(ownership, candidates), np.uint8(DYNAMIC), ownership).astype(np.uint8)
 
 
 def pixel_box(pixels: np.ndarray) -> tuple[int, int, int, int]:
@@ -66,13 +82,14 @@ def detail_boxes(state: SceneState, frame_index: int) -> list[tuple[int, int, in
     # expired candidates go even with the detail pass off, so the list cannot grow
     memory = state.memory
     memory.candidate_boxes = [(box, until) for box, until in memory.candidate_boxes if until >= frame_index]
+    memory.pending_displaced = [(ids, until) for ids, until in memory.pending_displaced if until >= frame_index]
     features = state.config.features
     if not (state.config.objects.enabled and features.object_detail):
         return []
     regions = [box for box, _ in memory.candidate_boxes]
     mask = memory.previous_mask
     if mask is not None and mask.any():
-        for object_id in np.unique(mask[mask > 0]):
+        for object_id in np.unique(mask[(mask > 0) & (mask != DYNAMIC)]):
             regions.append(pixel_box(mask == object_id))
     if not regions:
         return []

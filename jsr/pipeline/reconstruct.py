@@ -12,8 +12,10 @@ each stage is a module of its own, handed the state that lasts across frames
    (:mod:`~jsr.pipeline.object_tracking`), and merge maps that turn out to be one object
    (:mod:`~jsr.pipeline.map_merging`);
 4. give every measurement to one map, Algorithm 1, Section 2.3 (:mod:`~jsr.pipeline.classify`);
-5. detect moving regions among the static map's outliers and start or re-identify object maps,
-   Section 2.1 (:mod:`~jsr.pipeline.moving_regions`);
+5. detect moving regions among the static map's outliers and start candidate object maps or
+   re-identify objects, Section 2.1 (:mod:`~jsr.pipeline.moving_regions`), and confirm, dissolve
+   or declare non-rigid the candidates by their evidence over frames
+   (:mod:`~jsr.pipeline.confirmation`);
 6. keep what may have moved out of the static map and retire static landmarks that belonged to
    an object (:mod:`~jsr.pipeline.static_hygiene`);
 7. update each map whose registration succeeded, when its view is new, Section 2.4
@@ -34,6 +36,7 @@ from jsr.io.camera import CameraIntrinsics
 from jsr.io.dataset import Frame
 from jsr.pipeline.bundle_scheduler import BundleScheduler
 from jsr.pipeline.classify import classify_frame
+from jsr.pipeline.confirmation import drop_undecided, weigh_candidates
 from jsr.pipeline.free_space import FreeSpaceViews
 from jsr.pipeline.frontend import FrontEnd
 from jsr.pipeline.map_merging import merge_duplicates, merge_registered_maps
@@ -44,8 +47,8 @@ from jsr.pipeline.object_registration import ObjectRegistrar
 from jsr.pipeline.object_surfaces import ObjectSurfaces
 from jsr.pipeline.object_tracking import register_objects
 from jsr.pipeline.object_trajectory import object_trajectory
-from jsr.pipeline.ownership import detail_boxes, ownership_image
-from jsr.pipeline.state import STATIC_MAP, FrameContext, FrameReport, MapCounts, RandomStreams, SceneState
+from jsr.pipeline.ownership import detail_boxes, ownership_image, published_mask
+from jsr.pipeline.state import DYNAMIC, STATIC_MAP, FrameContext, FrameReport, MapCounts, RandomStreams, SceneState
 from jsr.pipeline.static_hygiene import beside_moved_objects, retire_static_landmarks, retire_vacated_landmarks
 from jsr.pipeline.static_tracking import current_pose, register_static, static_inlier_landmarks
 
@@ -86,6 +89,10 @@ class Reconstructor:
             focal_length=focal_length,
         )
         self._init_object_mask = None if init_object_mask is None else np.asarray(init_object_mask, dtype=bool)
+        if config.objects.enabled and config.objects.shape_reidentify:
+            # Open3D (surface models, their alignment) takes seconds to load: here, not in the
+            # first frame that re-identifies an object by its shape
+            import open3d  # noqa: F401
 
     # what users of the results read
     @property
@@ -94,11 +101,13 @@ class Reconstructor:
 
     @property
     def object_maps(self) -> list[ObjectMap]:
-        return self.state.object_maps
+        """The objects: confirmed object maps (candidates on probation are not listed)."""
+        return [m for m in self.state.object_maps if m.confirmed]
 
     @property
     def maps(self) -> list[Map]:
-        return self.state.maps
+        """The static map and the objects."""
+        return [self.state.static_map, *self.object_maps]
 
     @property
     def reports(self) -> list[FrameReport]:
@@ -108,6 +117,16 @@ class Reconstructor:
     def merged_into(self) -> dict[int, int]:
         """Object id -> the id of the map it was merged into."""
         return self.state.merged_into
+
+    @property
+    def objects_dissolved(self) -> list[int]:
+        """Ids of the candidates that never moved beyond the noise (given to the static map)."""
+        return self.state.dissolved
+
+    @property
+    def objects_non_rigid(self) -> list[int]:
+        """Ids of the candidates no rigid motion explained (their regions are dynamic)."""
+        return self.state.non_rigid
 
     @property
     def keyframe_masks(self) -> dict[int, np.ndarray]:
@@ -126,9 +145,10 @@ class Reconstructor:
             logger.warning("frame %d: depth image %s has no valid depth; check it (the frame can only be placed "
                            "from 2D matches)", frame.index, frame.depth_path.name)
         measurements = self.frontend.process(frame, detail_boxes(state, frame.index))
-        self._apply_bundle_adjustments()
         report = FrameReport(frame.index, frame.timestamp, frame.name, tracked=False, T_w_c=None)
         ctx = FrameContext(frame, measurements, report, timings=dict(measurements.timings_ms))
+        with _timed(ctx, "bundle_wait"):
+            self._apply_bundle_adjustments()
         if not state.static_map.keyframes:
             initialise(state, ctx, self._init_object_mask)  # the world frame, the static map (and object 1)
         else:
@@ -148,6 +168,9 @@ class Reconstructor:
         if objects_on and ctx.static is not None:
             with _timed(ctx, "detection"):
                 detect_moving_regions(state, ctx)
+        if objects_on:
+            with _timed(ctx, "confirmation"):
+                weigh_candidates(state, ctx)
         state.memory.previous_static_inliers = static_inlier_landmarks(ctx.static) if ctx.registered else None
         with _timed(ctx, "map_update"):
             if ctx.static is not None:
@@ -180,15 +203,17 @@ class Reconstructor:
             reference = state.static_map.keyframes[-1]
             report.reference_keyframe = reference.keyframe_id
             report.T_keyframe_cam = np.linalg.inv(reference.T_map_cam) @ report.T_w_c
-        report.mask = ownership_image(ctx.measurements, ctx.assignment)
-        state.memory.previous_mask = report.mask  # report.mask may be dropped by the caller once written
+        ownership = ownership_image(ctx.measurements, ctx.assignment, ctx.dynamic)
+        report.mask = published_mask(ownership, state.object_maps)  # may be dropped by the caller once written
+        report.dynamic_pixels = int(np.count_nonzero(report.mask == DYNAMIC))
+        state.memory.previous_mask = ownership
         if report.new_keyframe or report.objects_created or any(
                 m.keyframes and m.keyframes[-1].frame_index == frame.index for m in state.object_maps):
-            state.keyframe_masks[frame.index] = report.mask
-            state.surfaces.remember(frame, report.mask, state.object_maps)
+            state.keyframe_masks[frame.index] = ownership
+            state.surfaces.remember(frame, ownership, state.object_maps)
         report.maps = {STATIC_MAP: MapCounts(len(state.static_map.keyframes), state.static_map.points.active_count,
                                              len(state.static_map.planes), report.tracked)}
-        for object_map in state.object_maps:
+        for object_map in self.object_maps:
             report.maps[object_map.name] = MapCounts(
                 len(object_map.keyframes), object_map.points.active_count, len(object_map.planes),
                 object_map.object_id in report.objects_tracked)
@@ -219,7 +244,9 @@ class Reconstructor:
         return current_pose(self.state.static_map, report)
 
     def finish(self) -> None:
-        """Wait for and apply the last bundle adjustments."""
+        """Drop the candidates still undecided (dissolved), then wait for and apply the last
+        bundle adjustments."""
+        drop_undecided(self.state)
         for map_ in self.state.maps:
             self.state.bundle.finish(map_)
 

@@ -54,6 +54,7 @@ def grow(state: SceneState, ctx: FrameContext, seeds: list[int], static_inliers:
     moved = (stats.matched >= min_features) & (stats.outlier_ratio >= 1.0 - UNSUPPORTED_STATIC_SHARE) & (
         static_count < min_features)
     candidates &= ~seen_static | moved
+    why = {"unsupported": candidates.copy()}  # which rule let each segment in (debug log)
     # A face with keypoints none of which is a static inlier (seen at a grazing angle, with
     # few of them with depth, or a side the camera had not seen before the object moved),
     # a good share of which lies in space the static keyframes saw empty: it moved in. This
@@ -63,8 +64,9 @@ def grow(state: SceneState, ctx: FrameContext, seeds: list[int], static_inliers:
     features = np.array([len(i) for i in measurements.segments.point_indices])
     share = config.objects.grow_violation_share
     if share > 0:
-        candidates |= (features >= min_features) & (segment_owner == 0) & (static_count == 0) & (
+        why["moved in"] = (features >= min_features) & (segment_owner == 0) & (static_count == 0) & (
             sampled >= state.free_space.min_samples()) & (violations >= share * sampled)
+        candidates |= why["moved in"]
     if config.objects.grow_unmatched:
         # A textured face where the static keyframes saw a surface, whose 3D features hardly
         # match the static map at all: had the keyframes seen this texture there, its
@@ -79,10 +81,11 @@ def grow(state: SceneState, ctx: FrameContext, seeds: list[int], static_inliers:
         # agreement and none in free space).
         three_d = np.bincount(point_segment[measurements.points.has_depth & (point_segment >= 0)],
                               minlength=len(measurements.segments))
-        candidates |= seen_static & (segment_owner == 0) & (static_count == 0) & (
+        why["unmatched"] = seen_static & (segment_owner == 0) & (static_count == 0) & (
             three_d >= UNMATCHED_FEATURE_FACTOR * min_features) & (
             stats.matched <= UNSUPPORTED_STATIC_SHARE * three_d) & (
             violations >= state.free_space.min_samples())
+        candidates |= why["unmatched"]
     if inside is not None:
         # Inside the object's extent and not shown static by its features: the object's own
         # faces, even without reliable 3D features (seen at a grazing angle). Not where the
@@ -107,8 +110,14 @@ def grow(state: SceneState, ctx: FrameContext, seeds: list[int], static_inliers:
                              (later[0] + later[1])[taken & seen_since].tolist(),
                              samples[taken & seen_since].astype(int).tolist())
             taken &= ~seen_since
+        why["inside extent"] = taken
         candidates |= taken
-    return grow_region(seeds, candidates, ctx.segment_adjacency(config))
+    grown = grow_region(seeds, candidates, ctx.segment_adjacency(config))
+    added = [s for s in grown if s not in seeds]
+    if added:
+        logger.debug("frame %d: seeds %s grown by %s", measurements.frame_index, sorted(int(s) for s in seeds),
+                     {int(s): [rule for rule, mask in why.items() if mask[s]] for s in added})
+    return grown
 
 
 def grow_region(seeds: list[int], candidates: np.ndarray, adjacency: np.ndarray) -> list[int]:

@@ -173,11 +173,36 @@ def evaluate_pose(
     return _result(problem, corr, ransac_cfg, transform, masks, 0, "", started)
 
 
+def scaled_residuals(transform: np.ndarray, corr: Correspondences, ransac_cfg: RansacConfig,
+                     noise_cfg: NoiseConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """How far ``transform`` (``T_map_cam``, 4x4) leaves every correspondence from agreeing, as
+    residual over inlier threshold, capped at 1 (a pair the pose makes an outlier): ``(A,)``
+    3D-3D, ``(B,)`` 2D-3D (1 for a landmark behind the camera), ``(C,)`` plane normal angles and
+    ``(C,)`` plane offsets."""
+    transform = np.asarray(transform, dtype=float)
+    points3d = point3d_residuals(transform, corr) / point3d_thresholds(corr, noise_cfg)
+    distance, depth, along = point2d_residuals(transform, corr)
+    in_front = (along > 0) & (depth > 0)
+    points2d = np.where(in_front, distance / depth_thresholds(np.abs(depth), noise_cfg), 1.0)
+    angle, offset = plane_residuals(transform, corr)
+    return (np.minimum(points3d, 1.0), np.minimum(points2d, 1.0),
+            np.minimum(angle / np.deg2rad(ransac_cfg.plane_inlier_angle_degrees), 1.0),
+            np.minimum(offset / ransac_cfg.plane_inlier_distance, 1.0))
+
+
+def squared_cost(scaled: np.ndarray, noise_cfg: NoiseConfig) -> np.ndarray:
+    """Squared residuals in noise sigmas from residuals over inlier threshold (capped at 1,
+    :func:`scaled_residuals`): a residual's sigma is its threshold over ``noise.inlier_sigmas``,
+    times sqrt(2) (the landmark is about as noisy as the measurement)."""
+    return np.asarray(scaled) ** 2 * noise_cfg.inlier_sigmas**2 / 2.0
+
+
 def pose_cost(transform: np.ndarray, result: RegistrationResult, ransac_cfg: RansacConfig,
               noise_cfg: NoiseConfig) -> float:
     """How badly ``transform`` (``T_map_cam``, 4x4) explains the inliers of ``result``: the sum
     over them of squared residuals in noise sigmas, each residual capped at its inlier
-    threshold (a pair that ``transform`` makes an outlier costs the most a pair can).
+    threshold (a pair that ``transform`` makes an outlier costs the most a pair can;
+    :func:`scaled_residuals`, :func:`squared_cost`).
 
     A residual's sigma is its inlier threshold over ``noise.inlier_sigmas`` (3D and 2D points:
     the axial depth noise at their depth, at least ``noise.min_inlier_threshold`` over it;
@@ -191,16 +216,9 @@ def pose_cost(transform: np.ndarray, result: RegistrationResult, ransac_cfg: Ran
     corr = result.correspondences
     if corr is None:
         raise ValueError("pose_cost needs a result that carries its correspondences")
-    transform = np.asarray(transform, dtype=float)
-    mask3, mask2, mask_planes = result.inliers_point3d, result.inliers_point2d, result.inliers_plane
-    terms = [(point3d_residuals(transform, corr)[mask3] / point3d_thresholds(corr, noise_cfg)[mask3])]
-    distance, depth, along = point2d_residuals(transform, corr)
-    in_front = (along[mask2] > 0) & (depth[mask2] > 0)
-    terms.append(np.where(in_front, distance[mask2] / depth_thresholds(np.abs(depth[mask2]), noise_cfg), 1.0))
-    angle, offset = plane_residuals(transform, corr)
-    terms.append(angle[mask_planes] / np.deg2rad(ransac_cfg.plane_inlier_angle_degrees))
-    terms.append(offset[mask_planes] / ransac_cfg.plane_inlier_distance)
-    in_thresholds = np.minimum(np.concatenate(terms), 1.0)
+    points3d, points2d, angles, offsets = scaled_residuals(transform, corr, ransac_cfg, noise_cfg)
+    in_thresholds = np.concatenate([points3d[result.inliers_point3d], points2d[result.inliers_point2d],
+                                    angles[result.inliers_plane], offsets[result.inliers_plane]])
     return float((in_thresholds**2).sum() * noise_cfg.inlier_sigmas**2 / 2.0)
 
 

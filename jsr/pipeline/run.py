@@ -185,6 +185,12 @@ class ResultsWriter:
                 for m in reconstructor.object_maps
             ],
             "objects_merged": {str(k): v for k, v in sorted(reconstructor.merged_into.items())},
+            "objects_dissolved": list(reconstructor.objects_dissolved),
+            "objects_non_rigid": list(reconstructor.objects_non_rigid),
+            "dynamic_pixels": {
+                "frames": sum(r.dynamic_pixels > 0 for r in reports),
+                "per_frame": [r.dynamic_pixels for r in reports],
+            },
             "timings": timing_summary,
             "platform": platform.platform(),
             "dependencies": dependency_versions(),

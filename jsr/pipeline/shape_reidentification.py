@@ -54,7 +54,9 @@ def reidentify_by_shape(state: SceneState, ctx: FrameContext, group: list[int], 
     right alignment (synth_two_sim s5, frame 18: 1 draw in 40 missed a cylinder that the
     others found, and the cylinder started a second map). Only the alignments are drawn
     again: the region's surface, the lost objects' models and their own views' texture
-    agreement are computed once."""
+    agreement are computed once. An object is not tried for a region larger than it can be
+    (:func:`could_hold`): a person walking by is no lost box, and aligning a large surface is
+    what costs."""
     config, frame, measurements = state.config.objects, ctx.frame, ctx.measurements
     region_mask = np.isin(measurements.segments.label_image, group)
     sample = sample_surface(frame.depth, frame.color, region_mask, state.intrinsics, SURFACE_STRIDE,
@@ -62,7 +64,10 @@ def reidentify_by_shape(state: SceneState, ctx: FrameContext, group: list[int], 
     region = region_model(sample, config.shape_voxel)
     if region is None:
         return False
-    models = [(object_map, model) for object_map in lost if (model := state.surfaces.model(object_map)) is not None]
+    models = [(object_map, model) for object_map in lost
+              if (model := state.surfaces.model(object_map)) is not None and could_hold(model, region)]
+    if not models:
+        return False
     own_textures: dict[int, float | None] = {}  # ``ObjectSurfaces.self_texture`` per map, once (~0.3 s each)
     for attempt in range(config.shape_attempts):
         if align_to_lost_objects(state, ctx, group, group_points, region, models, own_textures, outcomes):
@@ -71,6 +76,21 @@ def reidentify_by_shape(state: SceneState, ctx: FrameContext, group: list[int], 
                              attempt + 1)
             return True
     return False
+
+
+REGION_SIZE_FACTOR = 1.5  # a region seen this much wider than an object's whole surface is not that object
+
+
+def could_hold(model: SurfaceModel, region: SurfaceModel) -> bool:
+    """Whether ``region`` (camera frame) is no wider than REGION_SIZE_FACTOR times the object's
+    surface ``model`` (its map frame): widths are the largest spread of the points along their
+    principal axes (rotation invariant), so a partial view always fits and a larger thing never."""
+    def width(points: np.ndarray) -> float:
+        centred = points - points.mean(axis=0)
+        axes = np.linalg.svd(centred[:: max(1, len(centred) // 2000)], full_matrices=False)[2]
+        spread = centred @ axes.T
+        return float((spread.max(axis=0) - spread.min(axis=0)).max())
+    return width(region.points) <= REGION_SIZE_FACTOR * width(model.points)
 
 
 def align_to_lost_objects(state: SceneState, ctx: FrameContext, group: list[int], group_points: np.ndarray,

@@ -33,7 +33,8 @@ from jsr.pipeline.segments import depth_adjacent_segments
 from jsr.pipeline.vlad import SegmentIndex, VladVocabulary
 
 STATIC_MAP = "static"
-MAX_OBJECT_ID = 255  # ownership masks are uint8 images
+DYNAMIC = 255  # ownership masks: moving, but no rigid object map explains it (people; candidates not yet confirmed)
+MAX_OBJECT_ID = DYNAMIC - 1  # ownership masks are uint8 images
 
 
 @dataclass
@@ -70,8 +71,10 @@ class FrameReport:
     inliers: int = 0
     reason: str = ""
     objects_tracked: list[int] = field(default_factory=list)
-    objects_created: list[int] = field(default_factory=list)
-    mask: np.ndarray | None = field(default=None, repr=False)  # (H, W) uint8: 0 static, K object K
+    objects_created: list[int] = field(default_factory=list)  # confirmed in this frame (or found by an initial mask)
+    # (H, W) uint8: 0 static, K object K, DYNAMIC moving but unmodelled (non-rigid, or a candidate not yet confirmed)
+    mask: np.ndarray | None = field(default=None, repr=False)
+    dynamic_pixels: int = 0  # pixels of this frame labelled DYNAMIC
     maps: dict[str, MapCounts] = field(default_factory=dict)
     timings_ms: dict[str, float] = field(default_factory=dict)
 
@@ -130,13 +133,18 @@ class DetectionMemory:
     ``recent_turns``: motions of regions with too few agreeing outliers to decide alone,
     ``(frame index, (4, 4) world motion new place -> old place)``; ``candidate_boxes``:
     pixel boxes ``(x0, y0, x1, y1)`` of moving regions too poor in 3D points to start a map,
-    with the last frame to look closer at them; ``previous_mask``: the last frame's ``(H, W)``
-    uint8 ownership image; ``previous_static_inliers``: ids of the static landmarks that were
-    inliers of the last frame's static registration (None after a bridged or lost frame).
+    with the last frame to look closer at them; ``pending_displaced``: the static landmarks
+    displaced in such a region, ``(L,)`` ids with the same last frame, still tested for
+    displacement in the next frames (they are no static inliers any more, so the region's
+    evidence would otherwise last one frame); ``previous_mask``: the last frame's ``(H, W)``
+    uint8 ownership image (0 static, K object or candidate K, DYNAMIC non-rigid);
+    ``previous_static_inliers``: ids of the static landmarks that were inliers of the last
+    frame's static registration (None after a bridged or lost frame).
     """
 
     recent_turns: list[tuple[int, np.ndarray]] = field(default_factory=list)
     candidate_boxes: list[tuple[tuple[int, int, int, int], int]] = field(default_factory=list)
+    pending_displaced: list[tuple[np.ndarray, int]] = field(default_factory=list)
     previous_mask: np.ndarray | None = None
     previous_static_inliers: np.ndarray | None = None
 
@@ -190,6 +198,8 @@ class SceneState:
     reports: list[FrameReport] = field(default_factory=list)
     keyframe_masks: dict[int, np.ndarray] = field(default_factory=dict)
     merged_into: dict[int, int] = field(default_factory=dict)
+    dissolved: list[int] = field(default_factory=list)  # candidates that never moved: given to the static map
+    non_rigid: list[int] = field(default_factory=list)  # candidates no rigid motion explained: dynamic
     next_object_id: int = 1  # ids are never reused, also after merges
     vocabulary: VladVocabulary | None = None
     segment_index: SegmentIndex = field(default_factory=SegmentIndex)
@@ -218,9 +228,16 @@ class FrameContext:
     measurement goes to (Algorithm 1 and what follows). ``suspects``: segments that may have
     moved, but not surely enough to start a map (an unconfirmed in-place turn, a moving region
     too poor in 3D points, a face beside an object that just moved): kept out of the static
-    keyframe. ``motions``: rigid motions found this frame for moving regions, ``(segments,
-    (4, 4) world motion new place -> old place)``. ``adjacency`` and ``free_space`` are
-    computed when first needed (:meth:`segment_adjacency`, :meth:`free_space_counts`).
+    keyframe. ``dynamic``: segments moving with no rigid object map to explain them (people):
+    kept out of the static map, written as DYNAMIC; ``unexplained``: candidates part of whose
+    region moved without their registration following it (:mod:`~jsr.pipeline.confirmation`).
+    ``motions``: rigid motions found this frame
+    for moving regions, ``(segments, (4, 4) world motion new place -> old place)``.
+    ``given_to_static``: ``(N,)`` static landmark id for point measurements whose landmark a
+    dissolved candidate just gave to the static map (-1 elsewhere; None: no such), and
+    ``force_static_keyframe`` makes this frame a static keyframe so that they are linked to it.
+    ``adjacency`` and ``free_space`` are computed when first needed (:meth:`segment_adjacency`,
+    :meth:`free_space_counts`).
     """
 
     frame: Frame
@@ -231,7 +248,11 @@ class FrameContext:
     outcomes: list[ObjectTrackingResult] = field(default_factory=list)
     assignment: FrameAssignment | None = None
     suspects: list[int] = field(default_factory=list)
+    dynamic: list[int] = field(default_factory=list)
+    unexplained: set[int] = field(default_factory=set)
     motions: list[tuple[list[int], np.ndarray]] = field(default_factory=list)
+    given_to_static: np.ndarray | None = None
+    force_static_keyframe: bool = False
     adjacency: np.ndarray | None = None  # (E, 2) depth-adjacent segment pairs
     free_space: tuple[np.ndarray, np.ndarray] | None = None  # (S,) violations, (S,) consistent
 

@@ -54,10 +54,24 @@ def without_suspects(ctx: FrameContext, point_ids: np.ndarray, plane_ids: np.nda
     return point_ids[~held], plane_ids[~held_planes]
 
 
+def without_dynamic(ctx: FrameContext, point_ids: np.ndarray, plane_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``point_ids`` ``(K,)`` and ``plane_ids`` ``(L,)`` without the measurements of this frame's
+    dynamic segments (``ctx.dynamic``: people and other movers no rigid map explains), static
+    inliers or not: a person standing still a moment matches the static map by chance, and
+    must not become part of it."""
+    if not ctx.dynamic:
+        return point_ids, plane_ids
+    measurements = ctx.measurements
+    point_segment = measurements.segments.segment_of_points(len(measurements.points))
+    plane_segment = segment_of_planes(measurements.segments, len(measurements.planes))
+    return (point_ids[~np.isin(point_segment[point_ids], ctx.dynamic)],
+            plane_ids[~np.isin(plane_segment[plane_ids], ctx.dynamic)])
+
+
 def beside_moved_objects(state: SceneState, ctx: FrameContext) -> list[int]:
     """Segments to hold back from the static keyframe (``objects.hold_back_beside_moved``):
     unowned, with no static inlier (point or plane), and depth-adjacent to a segment of an
-    object that moved in this frame: started, found again after it was lost, or registered
+    object that moved in this frame: started (or a candidate detected), found again after it was lost, or registered
     away from its last world pose (the resting test, ``objects.resting_max_extra_cost``;
     with that test off, a tracked object never counts as moved).
 
@@ -68,7 +82,8 @@ def beside_moved_objects(state: SceneState, ctx: FrameContext) -> list[int]:
     Held back, it stays unexplained, and the growth rules can give it to the object in the
     next frames (synth_jump s1 at 320x240: the box's side face, frames 29-37)."""
     frame, measurements, assignment = ctx.frame, ctx.measurements, ctx.assignment
-    moved = set(ctx.report.objects_created)
+    moved = set(ctx.report.objects_created) | {m.object_id for m in state.object_maps
+                                                if not m.confirmed and m.candidacy.born == frame.index}
     for outcome in ctx.outcomes:
         object_map = outcome.object_map
         if outcome.best is not None and (object_map.lost or outcome.moved_from_rest):
@@ -101,7 +116,9 @@ def beside_moved_objects(state: SceneState, ctx: FrameContext) -> list[int]:
 def retire_static_landmarks(state: SceneState, ctx: FrameContext) -> None:
     """Static-map hygiene: landmarks the static map took from an object (before it moved)
     would keep pulling the camera. A landmark matched to a measurement that went to an
-    object, or matched as an outlier in several frames in a row, is retired."""
+    object, or that lies in a dynamic segment (a person), or matched as an outlier in several
+    frames in a row, is retired. Those matched to a candidate's measurements stay until it is
+    confirmed: they are the evidence that it moved."""
     static, assignment = ctx.static, ctx.assignment
     if static.bridged:
         return
@@ -117,7 +134,11 @@ def retire_static_landmarks(state: SceneState, ctx: FrameContext) -> None:
     streak[landmarks[~inlier]] += 1
     retire = np.zeros(len(landmarks), dtype=bool)
     if config.enabled and config.retire_object_matches:
-        retire |= assignment.point_owner[matched.point_measurements] > 0
+        confirmed = [m.object_id for m in state.object_maps if m.confirmed]
+        retire |= np.isin(assignment.point_owner[matched.point_measurements], confirmed)
+        if ctx.dynamic:
+            point_segment = ctx.measurements.segments.segment_of_points(len(ctx.measurements.points))
+            retire |= np.isin(point_segment[matched.point_measurements], ctx.dynamic)
     if config.retire_after_outliers > 0:
         retire |= streak[landmarks] >= config.retire_after_outliers
     retired = landmarks[retire & state.static_map.points.active[landmarks]]

@@ -1,6 +1,7 @@
 """Static tracking: the camera registered against the static map (Caccamo et al. 2017, Section
 2.2.1, frame-based registration), with relocalisation after a loss and a bridge to the previous
-frame when the map has no good view of this one.
+frame when the map has no good view of this one. Features on what moved without a rigid map to
+explain it in the previous frame (people) are left out: they would drag the camera.
 """
 
 from __future__ import annotations
@@ -8,12 +9,14 @@ from __future__ import annotations
 import logging
 import time
 
+import cv2
 import numpy as np
 
 from jsr.pipeline.association import match_frame_to_map
 from jsr.pipeline.maps import Map
 from jsr.pipeline.registration import register
-from jsr.pipeline.state import CameraTrack, FrameContext, FrameReport, SceneState, StaticRegistration
+from jsr.pipeline.measurements import FrameMeasurements
+from jsr.pipeline.state import DYNAMIC, CameraTrack, FrameContext, FrameReport, SceneState, StaticRegistration
 
 logger = logging.getLogger(__name__)
 
@@ -36,6 +39,7 @@ def register_static(state: SceneState, ctx: FrameContext) -> None:
     # usually still near where it was lost), then against the whole map. The whole map alone
     # is not enough: its many near-duplicate landmarks make Lowe's ratio test reject most
     # matches.
+    usable = static_candidates(state, measurements)
     attempts = [config.matching.recent_keyframes]
     if relocalise and len(state.static_map.keyframes) > config.matching.recent_keyframes:
         attempts.append(None)
@@ -44,7 +48,7 @@ def register_static(state: SceneState, ctx: FrameContext) -> None:
         landmark_ids = state.static_map.recent_point_landmarks(keyframe_count)
         tic = time.perf_counter()
         matched = match_frame_to_map(measurements, state.static_map, landmark_ids, predicted, config,
-                                     state.focal_length)
+                                     state.focal_length, point_measurements=usable)
         matching_ms += (time.perf_counter() - tic) * 1000.0
         tic = time.perf_counter()
         result = register(matched.correspondences, config.ransac, config.noise, state.streams.static,
@@ -60,7 +64,7 @@ def register_static(state: SceneState, ctx: FrameContext) -> None:
         tic = time.perf_counter()
         previous_map = previous_frame_map(camera)
         bridge = match_frame_to_map(measurements, previous_map, np.arange(len(previous_map.points)),
-                                    predicted, config, state.focal_length)
+                                    predicted, config, state.focal_length, point_measurements=usable)
         bridge_result = register(bridge.correspondences, config.ransac, config.noise, state.streams.static,
                                  initial_guess=predicted)
         registration_ms += (time.perf_counter() - tic) * 1000.0
@@ -88,6 +92,23 @@ def register_static(state: SceneState, ctx: FrameContext) -> None:
     camera.lost = False
     camera.previous = (measurements, pose)
     ctx.static = StaticRegistration(matched, result, bridged)
+
+
+def static_candidates(state: SceneState, measurements: FrameMeasurements) -> np.ndarray | None:
+    """``(K,)`` the point measurements static registration may match: all (None) but those
+    within ``detection.dynamic_margin_px`` (640 wide) of the previous frame's dynamic pixels
+    (people keep moving: the margin covers a frame's motion of their edges)."""
+    previous = state.memory.previous_mask
+    if previous is None or not np.any(previous == DYNAMIC):
+        return None
+    dynamic = (previous == DYNAMIC).astype(np.uint8)
+    radius = int(round(state.config.detection.dynamic_margin_px * previous.shape[1] / 640))
+    if radius > 0:
+        dynamic = cv2.dilate(dynamic, np.ones((2 * radius + 1, 2 * radius + 1), np.uint8))
+    height, width = previous.shape
+    pixels = np.round(measurements.points.pixels).astype(np.int64)
+    u, v = np.clip(pixels[:, 0], 0, width - 1), np.clip(pixels[:, 1], 0, height - 1)
+    return np.flatnonzero(dynamic[v, u] == 0)
 
 
 def previous_frame_map(camera: CameraTrack) -> Map:

@@ -1,0 +1,289 @@
+"""Confirmation of candidate objects by evidence over frames.
+
+Caccamo et al. 2017 start an object map from one frame's outliers, and close with the cure for
+what that gets wrong: use a sequence of frames for detection. A moving region found by detection
+starts a *candidate* object map (:class:`~jsr.pipeline.maps.Candidacy`); its measurements stay
+out of the static map, and its pixels are written as moving but unmodelled (255) until it is
+decided. In each frame after its birth the candidate is registered like every object map, and
+weighed:
+
+* **Rigid or not.** Its registration must explain what it matched as one rigid body: it
+  succeeds, and its outliers are no more than the frame's mismatch rate (the static
+  registration's outlier ratio) makes likely (binomial tail below ``detection.significance``).
+  A frame in which part of its region was found moving again without its registration
+  following it (``FrameContext.unexplained``: a person's limbs move against the torso RANSAC
+  locked onto; or it was not found at all) is not rigid either.
+* **Moved or not.** For the measurements matched both by the candidate (its inliers) and by the
+  static map, the log-likelihood ratio of the two explanations with the paper's noise model:
+  ``sum(cost under the camera pose against the static landmarks - cost under the candidate's
+  pose against its own landmarks)``, costs in squared noise sigmas, each residual capped at its
+  inlier threshold (:func:`~jsr.pipeline.registration.scaled_residuals`). Were the region
+  static, the candidate would fit the same measurements only by its own 6 pose parameters: the
+  ratio summed over ``n`` frames is then a chi-square with ``6 n`` degrees of freedom.
+
+Decisions, in the frame they become certain: **confirmed** (an object from now on; the report
+lists it as created) when the summed ratio exceeds the chi-square quantile at
+``detection.confirm_significance`` over at least ``detection.confirm_frames`` rigid frames
+that outnumber the non-rigid ones; **non-rigid** (people, cloth: dynamic and unmodelled) when
+its non-rigid frames reach ``detection.confirm_frames`` and outnumber the rigid ones: the map
+is dropped and its region labelled dynamic; **dissolved** when ``detection.confirm_window``
+frames passed undecided: it never moved beyond the noise; when it was seen resting (rigid in
+``confirm_frames`` frames), its landmarks join the static map at their world positions.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from scipy.stats import binom, chi2
+
+from jsr.geometry import invert_transform, transform_points
+from jsr.pipeline.correspondences import depth_thresholds
+from jsr.pipeline.free_space import depth_at_projections
+from jsr.pipeline.maps import ObjectMap
+from jsr.pipeline.object_registration import ObjectTrackingResult
+from jsr.pipeline.registration import scaled_residuals, squared_cost
+from jsr.pipeline.state import DYNAMIC, FrameContext, SceneState
+
+logger = logging.getLogger(__name__)
+
+POSE_PARAMETERS = 6  # what the candidate fits per frame on top of the static explanation
+
+
+def weigh_candidates(state: SceneState, ctx: FrameContext) -> None:
+    """Weigh every candidate registered (or missed) in this frame and decide those that are
+    certain: confirm, declare non-rigid or dissolve (see the module docstring)."""
+    outcomes = {outcome.object_map.object_id: outcome for outcome in ctx.outcomes}
+    for object_map in [m for m in state.object_maps if not m.confirmed]:
+        candidacy = object_map.candidacy
+        if candidacy.born == ctx.frame.index:
+            continue  # the frame that detected it is the hypothesis, not its confirmation
+        outcome = outcomes.get(object_map.object_id)
+        if object_map.object_id in ctx.unexplained:
+            candidacy.nonrigid_frames += 1
+            logger.debug("frame %d: candidate %d: part of its region moved without its registration following it",
+                         ctx.frame.index, object_map.object_id)
+        elif outcome is not None and outcome.success and ctx.registered:
+            if _rigid(state, ctx, outcome):
+                candidacy.rigid_frames += 1
+                ratio, counted = motion_evidence(state, ctx, outcome)
+                if counted:
+                    candidacy.evidence += ratio
+                    candidacy.evidence_frames += 1
+                significance = state.config.detection.confirm_significance
+                by_matches = counted > 0 and ratio > chi2.isf(significance, POSE_PARAMETERS)
+                fit, seen = evidence_misfit(state, ctx, candidacy.evidence_landmarks)
+                by_landmarks = seen > 0 and fit > chi2.isf(significance, seen)
+                by_free_space = in_free_space(state, ctx, object_map.object_id)
+                candidacy.motion_frames += by_matches or by_landmarks or by_free_space
+                logger.debug("frame %d: candidate %d rigid; its matches' log-likelihood ratio %+.1f (%d measurements), "
+                             "its evidence landmarks' misfit %.1f (%d seen), in space seen empty: %s", ctx.frame.index,
+                             object_map.object_id, ratio, counted, fit, seen, by_free_space)
+            else:
+                candidacy.nonrigid_frames += 1
+                logger.debug("frame %d: candidate %d: its registration does not explain it as one rigid body",
+                             ctx.frame.index, object_map.object_id)
+        _decide(state, ctx, object_map, outcome)
+
+
+def motion_evidence(state: SceneState, ctx: FrameContext, outcome: ObjectTrackingResult) -> tuple[float, int]:
+    """The log-likelihood ratio that the measurements matched both by ``outcome``'s map (as
+    inliers) and by the static map are where the object map has them, not where the static map
+    has them; and how many measurements (points and planes) it counts. Costs are squared
+    residuals in noise sigmas, capped at the inlier threshold; the static side at the camera
+    pose of ``ctx.static``, the object side at the object's registered pose."""
+    config = state.config
+    object_matched, object_result = outcome.best
+    static_matched, static_result = ctx.static.matched, ctx.static.result
+    measurements = ctx.measurements
+
+    def costs(matched, result, transform):
+        """Per point and plane measurement ``(N,)``, ``(P,)``: its cost (NaN where unmatched)."""
+        points3d, points2d, angles, offsets = scaled_residuals(transform, result.correspondences, config.ransac,
+                                                               config.noise)
+        point_cost = np.full(len(measurements.points), np.nan)
+        point_cost[matched.point_measurements] = squared_cost(np.concatenate([points3d, points2d]), config.noise)
+        plane_cost = np.full(len(measurements.planes), np.nan)
+        plane_cost[matched.plane_measurements] = (squared_cost(angles, config.noise)
+                                                  + squared_cost(offsets, config.noise))
+        return point_cost, plane_cost
+
+    static_points, static_planes = costs(static_matched, static_result, static_result.transformation)
+    object_points, object_planes = costs(object_matched, object_result, object_result.transformation)
+    inlier_points = np.zeros(len(measurements.points), dtype=bool)
+    point_rows = np.concatenate([object_result.inliers_point3d, object_result.inliers_point2d]).astype(bool)
+    inlier_points[object_matched.point_measurements[point_rows]] = True
+    inlier_planes = np.zeros(len(measurements.planes), dtype=bool)
+    inlier_planes[object_matched.plane_measurements[np.asarray(object_result.inliers_plane, dtype=bool)]] = True
+    both_points = inlier_points & ~np.isnan(static_points)
+    both_planes = inlier_planes & ~np.isnan(static_planes)
+    ratio = float((static_points[both_points] - object_points[both_points]).sum()
+                  + (static_planes[both_planes] - object_planes[both_planes]).sum())
+    return ratio, int(both_points.sum() + both_planes.sum())
+
+
+def evidence_misfit(state: SceneState, ctx: FrameContext, landmarks: np.ndarray) -> tuple[float, int]:
+    """How badly the static map explains this frame's depth where the static landmarks
+    ``landmarks`` (those that showed, at detection, that a region moved) project
+    (:func:`depth_misfit` at the camera pose). A surface nearer than one of them counts too:
+    they were in view a moment before the detection, from about here, so what hides them now
+    came there since (the object itself, moved in front of its old place)."""
+    if not len(landmarks) or ctx.T_w_c is None:
+        return 0.0, 0
+    return depth_misfit(state, ctx, ctx.T_w_c, state.static_map.points.positions[landmarks], hidden_count=True)
+
+
+def depth_misfit(state: SceneState, ctx: FrameContext, T_map_cam: np.ndarray, points: np.ndarray,
+                 hidden_count: bool = False) -> tuple[float, int]:
+    """How badly the frame's depth agrees with ``(L, 3)`` map points seen from ``T_map_cam``:
+    the summed squared depth residuals at their projections in noise sigmas, each capped at the
+    inlier threshold, and how many points it counts. Unless ``hidden_count``, only points whose
+    measured depth is not nearer than theirs by more than the threshold count (one hidden
+    behind something proves nothing). Were the points where the depth says, the sum would be a
+    chi-square with one degree per point."""
+    camera = transform_points(invert_transform(T_map_cam), points)
+    _, inside, measured = depth_at_projections(camera, ctx.frame.depth, state.intrinsics)
+    z = camera[:, 2]
+    threshold = depth_thresholds(z, state.config.noise)
+    counted = inside & (measured > 0) & (hidden_count | (measured >= z - threshold))
+    scaled = np.minimum(np.abs(measured[counted] - z[counted]) / threshold[counted], 1.0)
+    return float(squared_cost(scaled, state.config.noise).sum()), int(counted.sum())
+
+
+def in_free_space(state: SceneState, ctx: FrameContext, object_id: int) -> bool:
+    """Whether the candidate's region in this frame (its segments) lies in space the latest
+    static keyframes saw empty, by the free-space test of detection: at least
+    ``objects.free_space_min_pixels`` (scaled) of its sampled pixels, and a share of at least
+    ``objects.free_space_share``, closer than the surface they saw by the noise margin."""
+    if not state.free_space.enabled:
+        return False
+    segments = np.flatnonzero(ctx.assignment.segment_owner == object_id)
+    if not len(segments):
+        return False
+    violations, consistent = ctx.free_space_counts(state)
+    moved, seen = int(violations[segments].sum()), int((violations[segments] + consistent[segments]).sum())
+    return moved >= state.free_space.min_samples() and moved >= state.config.objects.free_space_share * seen
+
+
+def _rigid(state: SceneState, ctx: FrameContext, outcome: ObjectTrackingResult) -> bool:
+    """Whether the candidate's registration has no more outliers than the frame's mismatch rate
+    makes likely (binomial tail at ``detection.significance``). The mismatch rate is the static
+    registration's outlier ratio over the point measurements given to the static map (those of
+    objects, candidates and people left out: they are outliers for another reason)."""
+    _, result = outcome.best
+    static_matched, static_result = ctx.static.matched, ctx.static.result
+    rows = ctx.assignment.point_owner[static_matched.point_measurements] == 0
+    inliers = np.concatenate([static_result.inliers_point3d, static_result.inliers_point2d]).astype(bool)
+    mismatch_rate = 1.0 - inliers[rows].sum() / max(int(rows.sum()), 1)
+    rate = float(np.clip(mismatch_rate, 0.05, 0.95))
+    outliers = result.num_matches - result.num_inliers
+    chance = float(binom.sf(outliers - 1, result.num_matches, rate))
+    # its own landmarks at its registered pose must lie on the surface the frame measures: a
+    # limb that moved against the torso leaves its landmarks over the background
+    object_map = outcome.object_map
+    misfit, seen = depth_misfit(state, ctx, result.transformation,
+                                object_map.points.positions[object_map.points.active])
+    bound = chi2.isf(state.config.detection.confirm_significance, max(seen, 1))
+    logger.debug("frame %d: candidate %d: %d of %d matches outliers (mismatch rate %.2f: chance %.3g); its landmarks' "
+                 "depth misfit %.1f over %d (bound %.1f)", ctx.frame.index, object_map.object_id, outliers,
+                 result.num_matches, rate, chance, misfit, seen, bound)
+    return chance >= state.config.detection.significance and misfit <= bound
+
+
+def _decide(state: SceneState, ctx: FrameContext, object_map: ObjectMap, outcome: ObjectTrackingResult | None) -> None:
+    """Confirm, declare non-rigid or dissolve ``object_map`` (registered by ``outcome`` in this
+    frame, if at all) when its evidence is certain."""
+    detection = state.config.detection
+    candidacy = object_map.candidacy
+    age = ctx.frame.index - candidacy.born
+    if (candidacy.motion_frames >= detection.confirm_frames and candidacy.rigid_frames > candidacy.nonrigid_frames):
+        object_map.candidacy = None
+        ctx.report.objects_created.append(object_map.object_id)
+        if object_map.last_tracked_frame == ctx.frame.index:
+            ctx.report.objects_tracked.append(object_map.object_id)
+        logger.info("frame %d: object %d confirmed (moved in %d of %d rigid frames; its matches' log-likelihood "
+                    "ratio %.1f over %d frames)", ctx.frame.index, object_map.object_id, candidacy.motion_frames,
+                    candidacy.rigid_frames, candidacy.evidence, candidacy.evidence_frames)
+    elif candidacy.nonrigid_frames >= detection.confirm_frames and \
+            candidacy.nonrigid_frames > candidacy.rigid_frames:
+        _drop(state, ctx, object_map, outcome, non_rigid=True)
+    elif age >= detection.confirm_window:
+        # it never showed motion: static if it was seen to rest, else nothing is known of it
+        _drop(state, ctx, object_map, outcome, non_rigid=False,
+              static=candidacy.rigid_frames >= detection.confirm_frames and not candidacy.motion_frames)
+
+
+def _drop(state: SceneState, ctx: FrameContext, object_map: ObjectMap, outcome: ObjectTrackingResult | None,
+          non_rigid: bool, static: bool = False) -> None:
+    """Remove a candidate that was not confirmed. Non-rigid: its pixels in this frame are
+    dynamic (``ctx.dynamic``) and nothing of it enters the static map. Dissolved (``static``:
+    it was seen resting): its active point landmarks join the static map at their world
+    positions (its last world pose), this frame's measurements given to it are static again,
+    and this frame becomes a static keyframe in which those that matched its landmarks observe
+    them (``ctx.given_to_static``): the landmarks are matched from the next frame on like every
+    static landmark. Otherwise (hardly seen since it was detected) it is only forgotten."""
+    object_id = object_map.object_id
+    state.bundle.finish(object_map)
+    state.object_maps.remove(object_map)
+    state.segment_index.remove_map(object_id)
+    assignment = ctx.assignment
+    own_segments = np.flatnonzero(assignment.segment_owner == object_id).tolist()
+    for owner in (assignment.point_owner, assignment.plane_owner, assignment.segment_owner):
+        owner[owner == object_id] = 0
+    for masks in state.keyframe_masks.values():
+        masks[masks == object_id] = DYNAMIC if non_rigid else 0
+    if non_rigid:
+        state.non_rigid.append(object_id)
+        ctx.dynamic.extend(own_segments)
+        logger.info("frame %d: candidate %d is not rigid (%d of %d frames not explained as one rigid body): "
+                    "dynamic, unmodelled", ctx.frame.index, object_id, object_map.candidacy.nonrigid_frames,
+                    object_map.candidacy.nonrigid_frames + object_map.candidacy.rigid_frames)
+        return
+    state.dissolved.append(object_id)
+    if not static:
+        logger.info("frame %d: candidate %d dropped (seen in %d of the %d frames since its detection, never moving)",
+                    ctx.frame.index, object_id, object_map.candidacy.rigid_frames,
+                    ctx.frame.index - object_map.candidacy.born)
+        return
+    static_ids = _give_landmarks(state, object_map)
+    if static_ids is not None:
+        if outcome is not None and outcome.success and ctx.registered:
+            matched, result = outcome.best
+            rows = np.concatenate([result.inliers_point3d, result.inliers_point2d]).astype(bool)
+            given = np.full(len(ctx.measurements.points), -1, dtype=np.int64)
+            given[matched.point_measurements[rows]] = static_ids[matched.point_landmarks[rows]]
+            ctx.given_to_static = given if ctx.given_to_static is None else np.maximum(ctx.given_to_static, given)
+            ctx.force_static_keyframe = True
+    logger.info("frame %d: candidate %d dissolved (never moved beyond the noise: log-likelihood ratio %.1f over %d "
+                "frames); its landmarks given to the static map", ctx.frame.index, object_id,
+                object_map.candidacy.evidence, object_map.candidacy.evidence_frames)
+
+
+def drop_undecided(state: SceneState) -> None:
+    """At the end of a run: the candidates still on probation had too few frames to show that
+    they moved; they are dissolved (listed, their landmarks given to the static map)."""
+    for object_map in [m for m in state.object_maps if not m.confirmed]:
+        state.bundle.finish(object_map)
+        state.object_maps.remove(object_map)
+        state.segment_index.remove_map(object_map.object_id)
+        for masks in state.keyframe_masks.values():
+            masks[masks == object_map.object_id] = 0
+        state.dissolved.append(object_map.object_id)
+        _give_landmarks(state, object_map)
+        logger.info("candidate %d dissolved at the end of the run (undecided)", object_map.object_id)
+
+
+def _give_landmarks(state: SceneState, object_map: ObjectMap) -> np.ndarray | None:
+    """Add the active point landmarks of a dissolved candidate to the static map at their world
+    positions (its last world pose): ``(L,)`` the static id of each of its landmarks (-1 for
+    inactive ones), or None when it had none or no world pose."""
+    points = object_map.points
+    active = np.flatnonzero(points.active)
+    if not len(active) or object_map.last_T_w_o is None:
+        return None
+    world = transform_points(object_map.last_T_w_o, points.positions[active])
+    sigmas = 1.0 / np.sqrt(np.maximum(points.weights[active], 1e-12))
+    static_ids = np.full(len(points), -1, dtype=np.int64)
+    static_ids[active] = state.static_map.points.add(world, points.descriptors[active], sigmas, points.colors[active])
+    return static_ids
