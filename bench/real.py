@@ -51,6 +51,7 @@ from objects import _json_ready, camera_ate, run_pipeline, score  # noqa: E402
 
 from jsr.config import load_config  # noqa: E402
 from jsr.io.dataset import open_sequence  # noqa: E402
+from jsr.pipeline.run import single_threaded_blas  # noqa: E402
 
 SHARED = REPO.parent / "shared" / "data"
 DEFAULT_SEQUENCES = "redkitchen300,bonn_crowd200,bonn_crowd_people,kitchen_box120"
@@ -65,7 +66,8 @@ def run_once(path: Path, config, frames: int | None) -> dict:
     sequence = open_sequence(path, max_frames=frames, max_time_difference=config.input.max_time_difference,
                              min_depth=config.input.min_depth, max_depth=config.input.max_depth)
     labels = path / "labels"
-    record = run_pipeline(sequence, config, labels if labels.is_dir() else None)
+    with single_threaded_blas():  # as jsr reconstruct runs (same results, same speed)
+        record = run_pipeline(sequence, config, labels if labels.is_dir() else None)
     result = score(record, sequence, path, config.input.max_time_difference)
     result["ate"] = camera_ate(record, sequence, config.input.max_time_difference)
     frame_ms = np.array([r.timings_ms.get("frame_total", np.nan) for r in record.reports])

@@ -1172,6 +1172,31 @@ def test_face_with_few_3d_features_grows_into_its_object_when_it_moved_in(violat
     reconstructor.close()
 
 
+@pytest.mark.parametrize("object_width, grown", [(0.3, [0]), (1.0, [0, 1]), (None, [0, 1])])
+def test_unsupported_segment_much_wider_than_its_object_stays_static(object_width, grown):
+    """A segment beside an object, 20 3D features none of them a static inlier, where the static
+    keyframes saw nothing: it joins the object as a face not matched yet, unless it is more
+    than SIZE_FACTOR times wider than everything known of the object (a 1.2 m piece of floor
+    beside a 0.3 m box: a real carpet with few static features)."""
+    from jsr.synth.scene import synth_intrinsics
+
+    intrinsics = synth_intrinsics(640, 480)
+    reconstructor = Reconstructor(load_config(None), intrinsics)
+    labels = np.full((480, 640), -1, dtype=np.int32)
+    labels[200:280, 280:360] = 0  # the object's segment
+    labels[300:480, 40:600] = 1  # 560 px wide at 1 m: about 1.2 m of floor
+    segments = _FrameSegments([np.arange(0, 20), np.arange(20, 40)])
+    segments.label_image = labels
+    measurements = SimpleNamespace(segments=segments, points=_FramePoints(has_depth=np.ones(40, dtype=bool)),
+                                   frame_index=5)
+    ctx = _frame_context(measurements, adjacency=np.array([[0, 1]]),
+                         free_space=(np.array([0, 0]), np.array([0, 0])))
+    ctx.frame = SimpleNamespace(depth=np.ones((480, 640), dtype=np.float32))
+    assert grow(reconstructor.state, ctx, [0], np.zeros(40, dtype=bool), np.array([1, 0]),
+                object_width=object_width) == grown
+    reconstructor.close()
+
+
 @pytest.mark.parametrize("unseen_only, segment_2_pixels, grown", [
     (True, 960, [0, 1]),  # 40 of its 60 samples tested, all on a surface seen before: stays static
     (True, 1600, [0, 1, 2]),  # 40 of 100: the keyframes saw too little of it to tell

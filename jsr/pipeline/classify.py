@@ -32,7 +32,7 @@ import numpy as np
 
 from jsr.pipeline.association import inlier_mask
 from jsr.pipeline.measurements import Segments
-from jsr.pipeline.object_extent import extent_hull, pixels_inside_hull, segments_inside_extent
+from jsr.pipeline.object_extent import extent_hull, largest_spread, pixels_inside_hull, segments_inside_extent
 from jsr.pipeline.object_registration import ObjectTrackingResult
 from jsr.pipeline.region_growth import grow
 from jsr.pipeline.state import FrameAssignment, FrameContext, SceneState
@@ -265,8 +265,10 @@ def classify_frame(state: SceneState, ctx: FrameContext) -> None:
             inside = None if not config.objects.grow_inside_extent else segments_inside_extent(
                 segments.label_image, frame.depth, state.intrinsics, by_id[r.object_id].T_o_c, hulls[r.object_id],
                 config.noise, len(segments), config.objects.extent_margin, config.objects.extent_share)
+            hull = hulls[r.object_id]
             grown = grow(state, ctx, own, static_inliers, segment_owner, inside,
-                         by_id[r.object_id].object_map.created_at_frame)
+                         by_id[r.object_id].object_map.created_at_frame,
+                         object_width=None if hull is None else largest_spread(hull.points))
             segment_owner[[s for s in grown if segment_owner[s] == 0]] = r.object_id
         # Features and planes inside an object's segment go to that object, matched or not:
         # new views of the object grow its map instead of leaking into the static map.

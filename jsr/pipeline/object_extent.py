@@ -83,3 +83,33 @@ def pixels_inside_hull(rows: np.ndarray, cols: np.ndarray, depths: np.ndarray, i
 # the 6 axis and 8 diagonal directions: a hull's facets facing closest to them bound it on all sides
 _PREFILTER_DIRECTIONS = np.array([[x, y, z] for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)
                                   if abs(x) + abs(y) + abs(z) in (1, 3)], dtype=float)
+
+
+SIZE_FACTOR = 1.5  # a surface this much wider than everything known of an object is not part of it
+
+
+def largest_spread(points: np.ndarray) -> float:
+    """The width of ``(N, 3)`` points: their largest spread along their principal axes (metres;
+    rotation invariant, so a partial view of an object is never wider than the object)."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(points) < 2:
+        return 0.0
+    centred = points - points.mean(axis=0)
+    axes = np.linalg.svd(centred[:: max(1, len(centred) // 2000)], full_matrices=False)[2]
+    spread = centred @ axes.T
+    return float((spread.max(axis=0) - spread.min(axis=0)).max())
+
+
+def segment_widths(label_image: np.ndarray, depth: np.ndarray, intrinsics, segments: np.ndarray,
+                   stride: int = 4) -> np.ndarray:
+    """``(len(segments),)`` the :func:`largest_spread` of each segment's surface (every
+    ``stride``-th pixel with depth, camera frame; 0 without depth)."""
+    labels = np.asarray(label_image)[::stride, ::stride]
+    z = np.asarray(depth, dtype=np.float64)[::stride, ::stride]
+    widths = np.zeros(len(segments))
+    for k, segment in enumerate(segments):
+        rows, cols = np.nonzero((labels == segment) & (z > 0))
+        if len(rows) >= 2:
+            widths[k] = largest_spread(backproject_pixels(cols * stride, rows * stride, z[rows, cols], intrinsics.fx,
+                                                          intrinsics.fy, intrinsics.cx, intrinsics.cy))
+    return widths

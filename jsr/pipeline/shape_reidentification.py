@@ -25,6 +25,7 @@ from jsr.pipeline.free_space import DepthView
 from jsr.pipeline.map_updates import claim_region
 from jsr.pipeline.maps import ObjectMap
 from jsr.pipeline.measurements import FrameMeasurements
+from jsr.pipeline.object_extent import SIZE_FACTOR, largest_spread
 from jsr.pipeline.object_registration import ObjectTrackingResult
 from jsr.pipeline.object_surfaces import SELF_TEXTURE_MIN, SURFACE_STRIDE
 from jsr.pipeline.correspondences import point3d_thresholds
@@ -78,19 +79,11 @@ def reidentify_by_shape(state: SceneState, ctx: FrameContext, group: list[int], 
     return False
 
 
-REGION_SIZE_FACTOR = 1.5  # a region seen this much wider than an object's whole surface is not that object
-
-
 def could_hold(model: SurfaceModel, region: SurfaceModel) -> bool:
-    """Whether ``region`` (camera frame) is no wider than REGION_SIZE_FACTOR times the object's
-    surface ``model`` (its map frame): widths are the largest spread of the points along their
-    principal axes (rotation invariant), so a partial view always fits and a larger thing never."""
-    def width(points: np.ndarray) -> float:
-        centred = points - points.mean(axis=0)
-        axes = np.linalg.svd(centred[:: max(1, len(centred) // 2000)], full_matrices=False)[2]
-        spread = centred @ axes.T
-        return float((spread.max(axis=0) - spread.min(axis=0)).max())
-    return width(region.points) <= REGION_SIZE_FACTOR * width(model.points)
+    """Whether ``region`` (camera frame) is no wider than ``SIZE_FACTOR`` times the object's
+    surface ``model`` (its map frame) (:func:`~jsr.pipeline.object_extent.largest_spread`: a
+    partial view always fits, a larger thing never)."""
+    return largest_spread(region.points) <= SIZE_FACTOR * largest_spread(model.points)
 
 
 def align_to_lost_objects(state: SceneState, ctx: FrameContext, group: list[int], group_points: np.ndarray,
