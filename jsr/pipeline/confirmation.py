@@ -224,15 +224,11 @@ def _drop(state: SceneState, ctx: FrameContext, object_map: ObjectMap, outcome: 
     them (``ctx.given_to_static``): the landmarks are matched from the next frame on like every
     static landmark. Otherwise (hardly seen since it was detected) it is only forgotten."""
     object_id = object_map.object_id
-    state.bundle.finish(object_map)
-    state.object_maps.remove(object_map)
-    state.segment_index.remove_map(object_id)
+    _forget(state, object_map, DYNAMIC if non_rigid else 0)
     assignment = ctx.assignment
     own_segments = np.flatnonzero(assignment.segment_owner == object_id).tolist()
     for owner in (assignment.point_owner, assignment.plane_owner, assignment.segment_owner):
         owner[owner == object_id] = 0
-    for masks in state.keyframe_masks.values():
-        masks[masks == object_id] = DYNAMIC if non_rigid else 0
     if non_rigid:
         state.non_rigid.append(object_id)
         ctx.dynamic.extend(own_segments)
@@ -264,14 +260,21 @@ def drop_undecided(state: SceneState) -> None:
     """At the end of a run: the candidates still on probation had too few frames to show that
     they moved; they are dissolved (listed, their landmarks given to the static map)."""
     for object_map in [m for m in state.object_maps if not m.confirmed]:
-        state.bundle.finish(object_map)
-        state.object_maps.remove(object_map)
-        state.segment_index.remove_map(object_map.object_id)
-        for masks in state.keyframe_masks.values():
-            masks[masks == object_map.object_id] = 0
+        _forget(state, object_map, 0)
         state.dissolved.append(object_map.object_id)
         _give_landmarks(state, object_map)
         logger.info("candidate %d dissolved at the end of the run (undecided)", object_map.object_id)
+
+
+def _forget(state: SceneState, object_map: ObjectMap, mask_value: int) -> None:
+    """Remove a candidate map from the scene: its bundle adjustment, its segments' index, and
+    its pixels in the keyframes' ownership images, which become ``mask_value`` (0 static,
+    DYNAMIC non-rigid)."""
+    state.bundle.finish(object_map)
+    state.object_maps.remove(object_map)
+    state.segment_index.remove_map(object_map.object_id)
+    for masks in state.keyframe_masks.values():
+        masks[masks == object_map.object_id] = mask_value
 
 
 def _give_landmarks(state: SceneState, object_map: ObjectMap) -> np.ndarray | None:

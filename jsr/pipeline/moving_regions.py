@@ -228,10 +228,12 @@ def displaced_landmarks(state: SceneState, ctx: FrameContext, static_inliers: np
     displaced in it."""
     config = state.config.detection
     frame, measurements, static, T_w_c = ctx.frame, ctx.measurements, ctx.static, ctx.T_w_c
-    previous = state.memory.previous_static_inliers
+    memory = state.memory
+    memory.pending_displaced = [(ids, until) for ids, until in memory.pending_displaced if until >= frame.index]
+    previous = memory.previous_static_inliers
     if config.displaced_share <= 0 or previous is None:
         return []
-    pending = [ids for ids, _ in state.memory.pending_displaced]
+    pending = [ids for ids, _ in memory.pending_displaced]
     previous = np.union1d(previous, np.concatenate(pending)) if pending else previous
     if not len(previous):
         return []

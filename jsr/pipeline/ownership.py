@@ -82,7 +82,6 @@ def detail_boxes(state: SceneState, frame_index: int) -> list[tuple[int, int, in
     # expired candidates go even with the detail pass off, so the list cannot grow
     memory = state.memory
     memory.candidate_boxes = [(box, until) for box, until in memory.candidate_boxes if until >= frame_index]
-    memory.pending_displaced = [(ids, until) for ids, until in memory.pending_displaced if until >= frame_index]
     features = state.config.features
     if not (state.config.objects.enabled and features.object_detail):
         return []
