@@ -54,8 +54,11 @@ def main() -> int:
     parser.add_argument("sequences", nargs="+", type=Path)
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--other-options", action="store_true", help="compare with a record made with other options")
-    arguments, options = parser.parse_known_args()
-    options = [o for o in options if o != "--"]
+    # argparse would take the words after "--" for sequences: split them off first
+    argv = sys.argv[1:]
+    after = argv.index("--") if "--" in argv else len(argv)
+    arguments, options = parser.parse_known_args(argv[:after])
+    options += argv[after + 1:]
     arguments.reference.mkdir(parents=True, exist_ok=True)
     with ThreadPoolExecutor(arguments.jobs) as pool:
         results = list(pool.map(lambda s: run(s, options), arguments.sequences))
