@@ -19,16 +19,21 @@ weighed:
   pose against its own landmarks)``, costs in squared noise sigmas, each residual capped at its
   inlier threshold (:func:`~jsr.pipeline.registration.scaled_residuals`). Were the region
   static, the candidate would fit the same measurements only by its own 6 pose parameters: the
-  ratio summed over ``n`` frames is then a chi-square with ``6 n`` degrees of freedom.
+  ratio is then a chi-square with 6 degrees of freedom, and the frame shows motion when it
+  exceeds the quantile at ``detection.confirm_significance``. A frame shows motion too when
+  the static landmarks that showed, at detection, that the region moved
+  (``Candidacy.evidence_landmarks``) still disagree with the measured depth beyond the
+  chi-square bound (:func:`evidence_misfit`), or when the region lies in space the static
+  keyframes saw empty (:func:`in_free_space`).
 
 Decisions, in the frame they become certain: **confirmed** (an object from now on; the report
-lists it as created) when the summed ratio exceeds the chi-square quantile at
-``detection.confirm_significance`` over at least ``detection.confirm_frames`` rigid frames
-that outnumber the non-rigid ones; **non-rigid** (people, cloth: dynamic and unmodelled) when
-its non-rigid frames reach ``detection.confirm_frames`` and outnumber the rigid ones: the map
-is dropped and its region labelled dynamic; **dissolved** when ``detection.confirm_window``
-frames passed undecided: it never moved beyond the noise; when it was seen resting (rigid in
-``confirm_frames`` frames), its landmarks join the static map at their world positions.
+lists it as created) when at least ``detection.confirm_frames`` rigid frames showed motion and
+the rigid frames outnumber the non-rigid ones; **non-rigid** (people, cloth: dynamic and
+unmodelled) when its non-rigid frames reach ``detection.confirm_frames`` and outnumber the
+rigid ones: the map is dropped and its region labelled dynamic; **dissolved** when
+``detection.confirm_window`` frames passed undecided: it never moved beyond the noise; when it
+was seen resting (rigid in ``confirm_frames`` frames, none showing motion), its landmarks join
+the static map at their world positions.
 """
 
 from __future__ import annotations
