@@ -10,7 +10,7 @@ from scipy.stats import chi2
 from jsr.config import load_config
 from jsr.geometry import make_transform
 from jsr.pipeline.association import matched_frame_from_pairs
-from jsr.pipeline.confirmation import depth_misfit, motion_evidence, weigh_candidates
+from jsr.pipeline.confirmation import depth_misfit, motion_evidence, weigh_candidates, weigh_objects
 from jsr.pipeline.maps import Candidacy, Map, ObjectMap
 from jsr.pipeline.measurements import PointMeasurements
 from jsr.pipeline.object_registration import ObjectTrackingResult
@@ -141,3 +141,34 @@ def test_a_candidate_that_never_moved_is_dissolved(rigid_frames, given):
     assert state.object_maps == [] and state.dissolved == [5] and state.non_rigid == []
     assert len(state.static_map.points) == (12 if given else 0)
     assert not (ctx.assignment.point_owner == 5).any() and (state.keyframe_masks[9] == 0).all()
+
+
+def _object_state(rigid_frames: int, nonrigid_frames: int):
+    """A confirmed object with its life's rigidity counts, registered in this frame."""
+    state, ctx, object_map = _candidate_state(Candidacy(born=10))
+    object_map.candidacy = None
+    object_map.rigid_frames, object_map.nonrigid_frames = rigid_frames, nonrigid_frames
+    ctx.outcomes = [SimpleNamespace(object_map=object_map, success=True)]
+    return state, ctx, object_map
+
+
+@pytest.mark.parametrize("rigid_frames, nonrigid_frames, dropped", [(2, 2, True), (10, 2, False), (0, 1, False)])
+def test_an_object_is_weighed_for_rigidity_over_its_life(monkeypatch, rigid_frames, nonrigid_frames, dropped):
+    """A confirmed object not explained as one rigid body in this frame: dropped as dynamic once
+    its non-rigid frames reach confirm_frames (3) and outnumber its rigid ones (a person's torso
+    that looked rigid on probation); a box rigid through most of its life, or one with too few
+    frames to tell, stays."""
+    monkeypatch.setattr("jsr.pipeline.confirmation._rigid", lambda state, ctx, outcome: False)
+    state, ctx, object_map = _object_state(rigid_frames, nonrigid_frames)
+    weigh_objects(state, ctx)
+    assert object_map.nonrigid_frames == nonrigid_frames + 1
+    assert (state.object_maps == []) == dropped and (state.non_rigid == [5]) == dropped
+    assert (state.keyframe_masks[9] == (DYNAMIC if dropped else 5)).all()
+    assert (sorted(ctx.dynamic) == [1, 2]) == dropped
+
+
+def test_a_rigid_frame_counts_for_the_object(monkeypatch):
+    monkeypatch.setattr("jsr.pipeline.confirmation._rigid", lambda state, ctx, outcome: True)
+    state, ctx, object_map = _object_state(2, 2)
+    weigh_objects(state, ctx)
+    assert object_map.rigid_frames == 3 and state.object_maps == [object_map] and ctx.dynamic == []

@@ -34,6 +34,11 @@ rigid ones: the map is dropped and its region labelled dynamic; **dissolved** wh
 ``detection.confirm_window`` frames passed undecided: it never moved beyond the noise; when it
 was seen resting (rigid in ``confirm_frames`` frames, none showing motion), its landmarks join
 the static map at their world positions.
+
+Confirmed objects are weighed for rigidity over their whole life (:func:`weigh_objects`): a
+walking person's torso can look rigid for the few frames of probation, and its limbs, then its
+whole body, stop fitting one rigid motion afterwards. Left as an object, every later moving
+region was aligned to its person-sized surface (seconds per frame on bonn_crowd_people).
 """
 
 from __future__ import annotations
@@ -90,6 +95,27 @@ def weigh_candidates(state: SceneState, ctx: FrameContext) -> None:
                 logger.debug("frame %d: candidate %d: its registration does not explain it as one rigid body",
                              ctx.frame.index, object_map.object_id)
         _decide(state, ctx, object_map, outcome)
+
+
+def weigh_objects(state: SceneState, ctx: FrameContext) -> None:
+    """Keep weighing every confirmed object registered in this frame as one rigid body (as
+    candidates are, :func:`_rigid`), over its life since its detection. One whose non-rigid
+    frames reach ``detection.confirm_frames`` and outnumber its rigid ones was a non-rigid mover
+    that looked rigid while on probation (a person's torso, walking on): it is dropped and its
+    region labelled dynamic, as a non-rigid candidate is. Frames in which it was an object keep
+    its id in ``masks/``."""
+    outcomes = {outcome.object_map.object_id: outcome for outcome in ctx.outcomes}
+    for object_map in [m for m in state.object_maps if m.confirmed]:
+        outcome = outcomes.get(object_map.object_id)
+        if outcome is None or not outcome.success or not ctx.registered:
+            continue
+        if _rigid(state, ctx, outcome):
+            object_map.rigid_frames += 1
+            continue
+        object_map.nonrigid_frames += 1
+        if object_map.nonrigid_frames >= state.config.detection.confirm_frames and \
+                object_map.nonrigid_frames > object_map.rigid_frames:
+            _drop(state, ctx, object_map, outcome, non_rigid=True)
 
 
 def motion_evidence(state: SceneState, ctx: FrameContext, outcome: ObjectTrackingResult) -> tuple[float, int]:
@@ -204,6 +230,7 @@ def _decide(state: SceneState, ctx: FrameContext, object_map: ObjectMap, outcome
     age = ctx.frame.index - candidacy.born
     if (candidacy.motion_frames >= detection.confirm_frames and candidacy.rigid_frames > candidacy.nonrigid_frames):
         object_map.candidacy = None
+        object_map.rigid_frames, object_map.nonrigid_frames = candidacy.rigid_frames, candidacy.nonrigid_frames
         ctx.report.objects_created.append(object_map.object_id)
         if object_map.last_tracked_frame == ctx.frame.index:
             ctx.report.objects_tracked.append(object_map.object_id)
@@ -237,9 +264,10 @@ def _drop(state: SceneState, ctx: FrameContext, object_map: ObjectMap, outcome: 
     if non_rigid:
         state.non_rigid.append(object_id)
         ctx.dynamic.extend(own_segments)
-        logger.info("frame %d: candidate %d is not rigid (%d of %d frames not explained as one rigid body): "
-                    "dynamic, unmodelled", ctx.frame.index, object_id, object_map.candidacy.nonrigid_frames,
-                    object_map.candidacy.nonrigid_frames + object_map.candidacy.rigid_frames)
+        counts = object_map.candidacy or object_map
+        logger.info("frame %d: %s %d is not rigid (%d of %d frames not explained as one rigid body): dynamic, "
+                    "unmodelled", ctx.frame.index, "candidate" if object_map.candidacy else "object", object_id,
+                    counts.nonrigid_frames, counts.nonrigid_frames + counts.rigid_frames)
         return
     state.dissolved.append(object_id)
     if not static:

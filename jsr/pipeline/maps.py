@@ -341,6 +341,9 @@ class ObjectMap(Map):
     ``candidacy``: while not None, the map is a candidate that must still be confirmed (it
     becomes an object) or is dissolved; ``dormant``: not seen for a while, so it is no longer
     registered every frame, only tried when a new moving region could be it.
+    ``rigid_frames``, ``nonrigid_frames``: once confirmed, the frames since its detection in
+    which its registration did, or did not, explain it as one rigid body (its candidacy's
+    counts, continued: :func:`~jsr.pipeline.confirmation.weigh_objects`).
     """
 
     def __init__(self, object_id: int, created_at_frame: int, candidacy: Candidacy | None = None):
@@ -360,6 +363,8 @@ class ObjectMap(Map):
         self.frames_tracked = 0
         self.candidacy = candidacy
         self.dormant = False
+        self.rigid_frames = 0
+        self.nonrigid_frames = 0
 
     @property
     def confirmed(self) -> bool:

@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 from jsr.geometry import cross_matrices, make_transform, rotation_about_axis, transform_points
 from jsr.pipeline.surface_evidence import (color_residual, fitness, same_placement, share_on_surface, texture_agreement,
                                            texture_sweep, turn_about)
-from jsr.pipeline.surfaces import SurfaceModel
+from jsr.pipeline.surfaces import SurfaceModel, thinned
 
 
 def _fpfh(model: SurfaceModel, voxel: float) -> np.ndarray:
@@ -43,7 +43,13 @@ SUPPORT_CHUNK = 256  # RANSAC hypotheses scored together (bounds the memory of t
 RANKED_HYPOTHESES = 200  # the best-supported RANSAC hypotheses from which the ICP starts are chosen
 FITTING_HYPOTHESES = 6  # ... besides the best-supported distinct ones, this many best-fitting distinct ones
 FIT_SAMPLE = 150  # region points (evenly spread over its list) on which a hypothesis's fit is measured
+REFINED_FITS = 32  # coloured ICP refines at most this many distinct point-to-plane fits, those of best colour agreement
 ICP_STARTS = 48  # ICP runs from at most this many starts, those that fit the sample best (bounds the cost)
+# Surfaces with more points are aligned at a coarser voxel, the same for both (their FPFH must be
+# comparable), so that they have about this many: ICP's cost grows with the points, and a
+# person-sized model (44000 points at 1 cm) made single frames take 10-50 s on bonn_crowd_people.
+# Objects of 20-30 cm have 900-1900 points at 1 cm and are aligned at full resolution.
+MAX_ALIGNED_POINTS = 2000
 COLOR_WEIGHT = 1.0  # weight of the neighbourhood colour (RGB in [0, 1]) against FPFH (histograms summing to 1)
 
 
@@ -198,12 +204,16 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
     more that put most of a sample of the region on the model surface. Each is also tried turned by 180 degrees about the
     axes of the aligned region (its near-symmetries: features must tell them apart), then
     refined by point-to-plane ICP, and each distinct fit covering ``min_fitness`` of the
-    region once more by coloured ICP (undone when it loses both fit and texture). Returned: alignments with at least ``min_fitness`` of the region on the
-    model surface, at most ``max_candidates``, no two within 2 cm and 10 degrees, ordered by
-    their colour residual.
+    region once more by coloured ICP (undone when it loses both fit and texture), at most
+    :data:`REFINED_FITS` of them. Large surfaces are aligned at a coarser voxel
+    (:func:`alignment_voxel`), their fitness measured at it. Returned: alignments with at least
+    ``min_fitness`` of the region on the model surface, at most ``max_candidates``, no two
+    within 2 cm and 10 degrees, ordered by their colour residual.
     """
     if len(region.points) < 20 or len(model.points) < 20:
         return []
+    voxel = alignment_voxel(len(region.points), len(model.points), voxel)
+    region, model = thinned(region, voxel), thinned(model, voxel)
     region_features, model_features = _features(region, voxel), _features(model, voxel)
     valid_region = np.flatnonzero(region_features.any(axis=1))
     valid_model = np.flatnonzero(model_features.any(axis=1))
@@ -272,6 +282,12 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
             if any(same_placement(coarse, other, centre, 0.05, 20.0) for other in refine):
                 continue  # many starts converge to one fit (within 5 cm and 20 degrees): refine it once
             refine.append(coarse)
+        # Coloured ICP is most of the cost, and a large surface fits a region in dozens of
+        # distinct places (a person: 40-50, 3-4 s a frame). The best-coloured are refined: the
+        # alignments are chosen by colour. Boxes gave 10-28 distinct fits on kitchen_box120.
+        if len(refine) > REFINED_FITS:
+            residuals = [color_residual(region, model, tree, coarse, voxel) for coarse in refine]
+            refine = [refine[k] for k in np.sort(np.argsort(residuals, kind="stable")[:REFINED_FITS])]
         # a fit that turns freely (a cylinder) is also tried where its texture lines up best
         for coarse in list(refine):
             swept = texture_sweep(region, model, tree, coarse, voxel, min_fitness)
@@ -292,6 +308,13 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
         if len(distinct) == max_candidates:
             break
     return distinct
+
+
+def alignment_voxel(region_points: int, model_points: int, voxel: float) -> float:
+    """The voxel at which surfaces of ``region_points`` and ``model_points`` points (thinned at
+    ``voxel``) are aligned: ``voxel``, coarsened so that the larger keeps about
+    :data:`MAX_ALIGNED_POINTS` (a surface's point count falls with the voxel's area)."""
+    return voxel * max(1.0, float(np.sqrt(max(region_points, model_points) / MAX_ALIGNED_POINTS)))
 
 
 def _half_turn(axis: np.ndarray, centre: np.ndarray) -> np.ndarray:

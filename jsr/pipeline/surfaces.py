@@ -91,6 +91,12 @@ def region_model(sample: SurfaceSample, voxel: float) -> SurfaceModel | None:
     return build_model([(np.eye(4), sample)], voxel)
 
 
+def thinned(surface: SurfaceModel, voxel: float) -> SurfaceModel:
+    """``surface`` with one point per ``voxel`` cube (the first of each, in order)."""
+    keep = _one_per_voxel(surface.points, voxel)
+    return SurfaceModel(surface.points[keep], surface.normals[keep], surface.colors[keep])
+
+
 def _normals(points: np.ndarray, voxel: float) -> np.ndarray:
     import open3d as o3d
 
