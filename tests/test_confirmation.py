@@ -10,7 +10,7 @@ from scipy.stats import chi2
 from jsr.config import load_config
 from jsr.geometry import make_transform
 from jsr.pipeline.association import matched_frame_from_pairs
-from jsr.pipeline.confirmation import depth_misfit, motion_evidence, weigh_candidates, weigh_objects
+from jsr.pipeline.confirmation import depth_misfit, motion_evidence, weigh_maps
 from jsr.pipeline.maps import Candidacy, Map, ObjectMap
 from jsr.pipeline.measurements import PointMeasurements
 from jsr.pipeline.object_registration import ObjectTrackingResult
@@ -96,9 +96,10 @@ def test_depth_misfit_counts_points_seen_through_not_those_hidden():
     assert seen == 30 and fit == pytest.approx(45.0, abs=1.0)
 
 
-def _candidate_state(candidacy: Candidacy, confirm_frames=3, window=6):
+def _candidate_state(candidacy: Candidacy, confirm_frames=3, window=6, rigid_frames=0, nonrigid_frames=0):
     config = load_config(None, [f"detection.confirm_frames={confirm_frames}", f"detection.confirm_window={window}"])
     object_map = ObjectMap(5, candidacy.born, candidacy)
+    object_map.rigid_frames, object_map.nonrigid_frames = rigid_frames, nonrigid_frames
     object_map.last_T_w_o = np.eye(4)
     _map_of(_points(count=12), np.eye(4), object_map)
     state = SimpleNamespace(config=config, object_maps=[object_map], keyframe_masks={9: np.full((2, 2), 5, np.uint8)},
@@ -114,8 +115,8 @@ def _candidate_state(candidacy: Candidacy, confirm_frames=3, window=6):
 
 
 def test_a_candidate_that_moved_rigidly_is_confirmed():
-    state, ctx, object_map = _candidate_state(Candidacy(born=10, motion_frames=3, rigid_frames=3))
-    weigh_candidates(state, ctx)
+    state, ctx, object_map = _candidate_state(Candidacy(born=10, motion_frames=3), rigid_frames=3)
+    weigh_maps(state, ctx)
     assert object_map.confirmed and ctx.report.objects_created == [5]
     assert state.dissolved == [] and state.non_rigid == []
 
@@ -123,9 +124,9 @@ def test_a_candidate_that_moved_rigidly_is_confirmed():
 def test_a_candidate_no_rigid_motion_explains_is_dynamic():
     """Part of its region moved without its registration following it, in more frames than it
     was rigid: dropped, its segments of this frame dynamic, its pixels in the kept masks too."""
-    state, ctx, object_map = _candidate_state(Candidacy(born=10, rigid_frames=1, nonrigid_frames=2))
+    state, ctx, object_map = _candidate_state(Candidacy(born=10), rigid_frames=1, nonrigid_frames=2)
     ctx.unexplained.add(5)
-    weigh_candidates(state, ctx)
+    weigh_maps(state, ctx)
     assert state.object_maps == [] and state.non_rigid == [5]
     assert sorted(ctx.dynamic) == [1, 2] and not (ctx.assignment.segment_owner == 5).any()
     assert (state.keyframe_masks[9] == DYNAMIC).all()
@@ -136,8 +137,8 @@ def test_a_candidate_that_never_moved_is_dissolved(rigid_frames, given):
     """Undecided after detection.confirm_window frames: seen resting (rigid in confirm_frames
     frames), its landmarks join the static map at their world positions; hardly seen, it is
     only forgotten. Either way it is listed as dissolved and its pixels are static again."""
-    state, ctx, object_map = _candidate_state(Candidacy(born=10, rigid_frames=rigid_frames), window=4)
-    weigh_candidates(state, ctx)
+    state, ctx, object_map = _candidate_state(Candidacy(born=10), window=4, rigid_frames=rigid_frames)
+    weigh_maps(state, ctx)
     assert state.object_maps == [] and state.dissolved == [5] and state.non_rigid == []
     assert len(state.static_map.points) == (12 if given else 0)
     assert not (ctx.assignment.point_owner == 5).any() and (state.keyframe_masks[9] == 0).all()
@@ -160,7 +161,7 @@ def test_an_object_is_weighed_for_rigidity_over_its_life(monkeypatch, rigid_fram
     frames to tell, stays."""
     monkeypatch.setattr("jsr.pipeline.confirmation._rigid", lambda state, ctx, outcome: False)
     state, ctx, object_map = _object_state(rigid_frames, nonrigid_frames)
-    weigh_objects(state, ctx)
+    weigh_maps(state, ctx)
     assert object_map.nonrigid_frames == nonrigid_frames + 1
     assert (state.object_maps == []) == dropped and (state.non_rigid == [5]) == dropped
     assert (state.keyframe_masks[9] == (DYNAMIC if dropped else 5)).all()
@@ -170,5 +171,5 @@ def test_an_object_is_weighed_for_rigidity_over_its_life(monkeypatch, rigid_fram
 def test_a_rigid_frame_counts_for_the_object(monkeypatch):
     monkeypatch.setattr("jsr.pipeline.confirmation._rigid", lambda state, ctx, outcome: True)
     state, ctx, object_map = _object_state(2, 2)
-    weigh_objects(state, ctx)
+    weigh_maps(state, ctx)
     assert object_map.rigid_frames == 3 and state.object_maps == [object_map] and ctx.dynamic == []

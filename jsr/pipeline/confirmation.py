@@ -35,7 +35,7 @@ rigid ones: the map is dropped and its region labelled dynamic; **dissolved** wh
 was seen resting (rigid in ``confirm_frames`` frames, none showing motion), its landmarks join
 the static map at their world positions.
 
-Confirmed objects are weighed for rigidity over their whole life (:func:`weigh_objects`): a
+Confirmed objects are weighed for rigidity over their whole life (:func:`_weigh_object`): a
 walking person's torso can look rigid for the few frames of probation, and its limbs, then its
 whole body, stop fitting one rigid motion afterwards. Left as an object, every later moving
 region was aligned to its person-sized surface (seconds per frame on bonn_crowd_people).
@@ -61,61 +61,76 @@ logger = logging.getLogger(__name__)
 POSE_PARAMETERS = 6  # what the candidate fits per frame on top of the static explanation
 
 
-def weigh_candidates(state: SceneState, ctx: FrameContext) -> None:
-    """Weigh every candidate registered (or missed) in this frame and decide those that are
-    certain: confirm, declare non-rigid or dissolve (see the module docstring)."""
+def weigh_maps(state: SceneState, ctx: FrameContext) -> None:
+    """Weigh every object map once in this frame: each candidate registered (or missed), and
+    decide those that are certain (confirm, declare non-rigid or dissolve; see the module
+    docstring); each confirmed object registered, for rigidity over its life
+    (:func:`_weigh_object`)."""
     outcomes = {outcome.object_map.object_id: outcome for outcome in ctx.outcomes}
-    for object_map in [m for m in state.object_maps if not m.confirmed]:
-        candidacy = object_map.candidacy
-        if candidacy.born == ctx.frame.index:
-            continue  # the frame that detected it is the hypothesis, not its confirmation
+    for object_map in list(state.object_maps):
         outcome = outcomes.get(object_map.object_id)
-        if object_map.object_id in ctx.unexplained:
-            candidacy.nonrigid_frames += 1
-            logger.debug("frame %d: candidate %d: part of its region moved without its registration following it",
-                         ctx.frame.index, object_map.object_id)
-        elif outcome is not None and outcome.success and ctx.registered:
-            if _rigid(state, ctx, outcome):
-                candidacy.rigid_frames += 1
-                ratio, counted = motion_evidence(state, ctx, outcome)
-                if counted:
-                    candidacy.evidence += ratio
-                    candidacy.evidence_frames += 1
-                significance = state.config.detection.confirm_significance
-                by_matches = counted > 0 and ratio > chi2.isf(significance, POSE_PARAMETERS)
-                fit, seen = evidence_misfit(state, ctx, candidacy.evidence_landmarks)
-                by_landmarks = seen > 0 and fit > chi2.isf(significance, seen)
-                by_free_space = in_free_space(state, ctx, object_map.object_id)
-                candidacy.motion_frames += by_matches or by_landmarks or by_free_space
-                logger.debug("frame %d: candidate %d rigid; its matches' log-likelihood ratio %+.1f (%d measurements), "
-                             "its evidence landmarks' misfit %.1f (%d seen), in space seen empty: %s", ctx.frame.index,
-                             object_map.object_id, ratio, counted, fit, seen, by_free_space)
-            else:
-                candidacy.nonrigid_frames += 1
-                logger.debug("frame %d: candidate %d: its registration does not explain it as one rigid body",
-                             ctx.frame.index, object_map.object_id)
-        _decide(state, ctx, object_map, outcome)
+        if object_map.confirmed:
+            _weigh_object(state, ctx, object_map, outcome)
+        else:
+            _weigh_candidate(state, ctx, object_map, outcome)
 
 
-def weigh_objects(state: SceneState, ctx: FrameContext) -> None:
-    """Keep weighing every confirmed object registered in this frame as one rigid body (as
-    candidates are, :func:`_rigid`), over its life since its detection. One whose non-rigid
-    frames reach ``detection.confirm_frames`` and outnumber its rigid ones was a non-rigid mover
-    that looked rigid while on probation (a person's torso, walking on): it is dropped and its
-    region labelled dynamic, as a non-rigid candidate is. Frames in which it was an object keep
-    its id in ``masks/``."""
-    outcomes = {outcome.object_map.object_id: outcome for outcome in ctx.outcomes}
-    for object_map in [m for m in state.object_maps if m.confirmed]:
-        outcome = outcomes.get(object_map.object_id)
-        if outcome is None or not outcome.success or not ctx.registered:
-            continue
+def _weigh_candidate(state: SceneState, ctx: FrameContext, object_map: ObjectMap,
+                     outcome: ObjectTrackingResult | None) -> None:
+    """Count this frame's evidence for a candidate (rigid or not; if rigid, moved or not) and
+    :func:`_decide` it."""
+    candidacy = object_map.candidacy
+    if candidacy.born == ctx.frame.index:
+        return  # the frame that detected it is the hypothesis, not its confirmation
+    if object_map.object_id in ctx.unexplained:
+        object_map.nonrigid_frames += 1
+        logger.debug("frame %d: candidate %d: part of its region moved without its registration following it",
+                     ctx.frame.index, object_map.object_id)
+    elif outcome is not None and outcome.success and ctx.registered:
         if _rigid(state, ctx, outcome):
             object_map.rigid_frames += 1
-            continue
-        object_map.nonrigid_frames += 1
-        if object_map.nonrigid_frames >= state.config.detection.confirm_frames and \
-                object_map.nonrigid_frames > object_map.rigid_frames:
-            _drop(state, ctx, object_map, outcome, non_rigid=True)
+            ratio, counted = motion_evidence(state, ctx, outcome)
+            if counted:
+                candidacy.evidence += ratio
+                candidacy.evidence_frames += 1
+            significance = state.config.detection.confirm_significance
+            by_matches = counted > 0 and ratio > chi2.isf(significance, POSE_PARAMETERS)
+            fit, seen = evidence_misfit(state, ctx, candidacy.evidence_landmarks)
+            by_landmarks = seen > 0 and fit > chi2.isf(significance, seen)
+            by_free_space = in_free_space(state, ctx, object_map.object_id)
+            candidacy.motion_frames += by_matches or by_landmarks or by_free_space
+            logger.debug("frame %d: candidate %d rigid; its matches' log-likelihood ratio %+.1f (%d measurements), "
+                         "its evidence landmarks' misfit %.1f (%d seen), in space seen empty: %s", ctx.frame.index,
+                         object_map.object_id, ratio, counted, fit, seen, by_free_space)
+        else:
+            object_map.nonrigid_frames += 1
+            logger.debug("frame %d: candidate %d: its registration does not explain it as one rigid body",
+                         ctx.frame.index, object_map.object_id)
+    _decide(state, ctx, object_map, outcome)
+
+
+def _weigh_object(state: SceneState, ctx: FrameContext, object_map: ObjectMap,
+                  outcome: ObjectTrackingResult | None) -> None:
+    """Keep weighing a confirmed object registered in this frame as one rigid body (as
+    candidates are, :func:`_rigid`), over its life since its detection. One that turns out
+    :func:`_non_rigid` was a non-rigid mover that looked rigid while on probation (a person's
+    torso, walking on): it is dropped and its region labelled dynamic, as a non-rigid candidate
+    is. Frames in which it was an object keep its id in ``masks/``."""
+    if outcome is None or not outcome.success or not ctx.registered:
+        return
+    if _rigid(state, ctx, outcome):
+        object_map.rigid_frames += 1
+        return
+    object_map.nonrigid_frames += 1
+    if _non_rigid(state, object_map):
+        _drop(state, ctx, object_map, outcome, non_rigid=True)
+
+
+def _non_rigid(state: SceneState, object_map: ObjectMap) -> bool:
+    """Whether the map's non-rigid frames reach ``detection.confirm_frames`` and outnumber its
+    rigid ones: no single rigid motion explains it."""
+    return (object_map.nonrigid_frames >= state.config.detection.confirm_frames
+            and object_map.nonrigid_frames > object_map.rigid_frames)
 
 
 def motion_evidence(state: SceneState, ctx: FrameContext, outcome: ObjectTrackingResult) -> tuple[float, int]:
@@ -228,22 +243,20 @@ def _decide(state: SceneState, ctx: FrameContext, object_map: ObjectMap, outcome
     detection = state.config.detection
     candidacy = object_map.candidacy
     age = ctx.frame.index - candidacy.born
-    if (candidacy.motion_frames >= detection.confirm_frames and candidacy.rigid_frames > candidacy.nonrigid_frames):
+    if candidacy.motion_frames >= detection.confirm_frames and object_map.rigid_frames > object_map.nonrigid_frames:
         object_map.candidacy = None
-        object_map.rigid_frames, object_map.nonrigid_frames = candidacy.rigid_frames, candidacy.nonrigid_frames
         ctx.report.objects_created.append(object_map.object_id)
         if object_map.last_tracked_frame == ctx.frame.index:
             ctx.report.objects_tracked.append(object_map.object_id)
         logger.info("frame %d: object %d confirmed (moved in %d of %d rigid frames; its matches' log-likelihood "
                     "ratio %.1f over %d frames)", ctx.frame.index, object_map.object_id, candidacy.motion_frames,
-                    candidacy.rigid_frames, candidacy.evidence, candidacy.evidence_frames)
-    elif candidacy.nonrigid_frames >= detection.confirm_frames and \
-            candidacy.nonrigid_frames > candidacy.rigid_frames:
+                    object_map.rigid_frames, candidacy.evidence, candidacy.evidence_frames)
+    elif _non_rigid(state, object_map):
         _drop(state, ctx, object_map, outcome, non_rigid=True)
     elif age >= detection.confirm_window:
         # it never showed motion: static if it was seen to rest, else nothing is known of it
         _drop(state, ctx, object_map, outcome, non_rigid=False,
-              static=candidacy.rigid_frames >= detection.confirm_frames and not candidacy.motion_frames)
+              static=object_map.rigid_frames >= detection.confirm_frames and not candidacy.motion_frames)
 
 
 def _drop(state: SceneState, ctx: FrameContext, object_map: ObjectMap, outcome: ObjectTrackingResult | None,
@@ -264,15 +277,14 @@ def _drop(state: SceneState, ctx: FrameContext, object_map: ObjectMap, outcome: 
     if non_rigid:
         state.non_rigid.append(object_id)
         ctx.dynamic.extend(own_segments)
-        counts = object_map.candidacy or object_map
         logger.info("frame %d: %s %d is not rigid (%d of %d frames not explained as one rigid body): dynamic, "
                     "unmodelled", ctx.frame.index, "candidate" if object_map.candidacy else "object", object_id,
-                    counts.nonrigid_frames, counts.nonrigid_frames + counts.rigid_frames)
+                    object_map.nonrigid_frames, object_map.nonrigid_frames + object_map.rigid_frames)
         return
     state.dissolved.append(object_id)
     if not static:
         logger.info("frame %d: candidate %d dropped (seen in %d of the %d frames since its detection, never moving)",
-                    ctx.frame.index, object_id, object_map.candidacy.rigid_frames,
+                    ctx.frame.index, object_id, object_map.rigid_frames,
                     ctx.frame.index - object_map.candidacy.born)
         return
     static_ids = _give_landmarks(state, object_map)

@@ -316,8 +316,8 @@ class Candidacy:
     (matched as its outliers, or displaced where it lies). ``evidence``: summed log-likelihood
     ratios (static map against object map explanation of the measurements both matched) over the
     ``evidence_frames`` that gave any; ``motion_frames``: frames in which some test rejected that
-    the static map explains the region; ``rigid_frames`` and ``nonrigid_frames``: frames in which
-    its registration did, or did not, explain its region as one rigid body.
+    the static map explains the region (its rigid and non-rigid frames are counted on the map:
+    :class:`ObjectMap`).
     """
 
     born: int
@@ -325,8 +325,6 @@ class Candidacy:
     evidence: float = 0.0
     evidence_frames: int = 0
     motion_frames: int = 0
-    rigid_frames: int = 0
-    nonrigid_frames: int = 0
 
 
 class ObjectMap(Map):
@@ -341,9 +339,9 @@ class ObjectMap(Map):
     ``candidacy``: while not None, the map is a candidate that must still be confirmed (it
     becomes an object) or is dissolved; ``dormant``: not seen for a while, so it is no longer
     registered every frame, only tried when a new moving region could be it.
-    ``rigid_frames``, ``nonrigid_frames``: once confirmed, the frames since its detection in
-    which its registration did, or did not, explain it as one rigid body (its candidacy's
-    counts, continued: :func:`~jsr.pipeline.confirmation.weigh_objects`).
+    ``rigid_frames``, ``nonrigid_frames``: the frames since its detection in which its
+    registration did, or did not, explain it as one rigid body, as a candidate and as an object
+    (:func:`~jsr.pipeline.confirmation.weigh_maps`).
     """
 
     def __init__(self, object_id: int, created_at_frame: int, candidacy: Candidacy | None = None):

@@ -36,7 +36,7 @@ from jsr.io.camera import CameraIntrinsics
 from jsr.io.dataset import Frame
 from jsr.pipeline.bundle_scheduler import BundleScheduler
 from jsr.pipeline.classify import classify_frame
-from jsr.pipeline.confirmation import drop_undecided, weigh_candidates, weigh_objects
+from jsr.pipeline.confirmation import drop_undecided, weigh_maps
 from jsr.pipeline.free_space import FreeSpaceViews
 from jsr.pipeline.frontend import FrontEnd
 from jsr.pipeline.map_merging import merge_duplicates, merge_registered_maps
@@ -170,8 +170,7 @@ class Reconstructor:
                 detect_moving_regions(state, ctx)
         if objects_on:
             with _timed(ctx, "confirmation"):
-                weigh_candidates(state, ctx)
-                weigh_objects(state, ctx)
+                weigh_maps(state, ctx)
         state.memory.previous_static_inliers = static_inlier_landmarks(ctx.static) if ctx.registered else None
         with _timed(ctx, "map_update"):
             if ctx.static is not None:

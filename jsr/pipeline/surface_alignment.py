@@ -212,8 +212,10 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
     """
     if len(region.points) < 20 or len(model.points) < 20:
         return []
-    voxel = alignment_voxel(len(region.points), len(model.points), voxel)
-    region, model = thinned(region, voxel), thinned(model, voxel)
+    coarser = alignment_voxel(len(region.points), len(model.points), voxel)
+    if coarser > voxel:  # (at their own voxel thinning keeps every point)
+        voxel = coarser
+        region, model = thinned(region, voxel), thinned(model, voxel)
     region_features, model_features = _features(region, voxel), _features(model, voxel)
     valid_region = np.flatnonzero(region_features.any(axis=1))
     valid_model = np.flatnonzero(model_features.any(axis=1))
