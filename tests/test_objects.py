@@ -417,6 +417,36 @@ def test_free_space_violation_flags_what_moved_in():
     assert violations.sum() == 0
 
 
+def test_free_space_measured_only_needs_depth_all_around():
+    """Beside a hole in the earlier view (a translucent object that returned no depth to it), a
+    sample is seen through by the lenient test, used to detect, but not by the strict one,
+    used to confirm."""
+    intrinsics = SimpleNamespace(fx=300.0, fy=300.0, cx=80.0, cy=60.0)
+    wall = np.full((120, 160), 2.0, dtype=np.float32)
+    wall[40:80, 56:80] = 0.0  # the view measured no depth over the left part of the thing
+    view = DepthView(wall[::4, ::4].copy(), np.eye(4), 4)
+    frame_depth = np.full((120, 160), 2.0, dtype=np.float32)
+    frame_depth[40:80, 40:80] = 1.0
+    labels = np.zeros((120, 160), dtype=np.int32)
+    labels[40:80, 40:80] = 1
+    lenient, _ = free_space_violations(frame_depth, labels, np.eye(4), intrinsics, view, 2, _Noise(), 0.05)
+    strict, _ = free_space_violations(frame_depth, labels, np.eye(4), intrinsics, view, 2, _Noise(), 0.05,
+                                      measured_only=True)
+    # 10 sampled columns: 4 over the wall (40-52), 6 over the hole; the column next to the
+    # hole has depth, but a neighbour without
+    assert lenient[1] == 4 * 10 and strict[1] == 3 * 10
+    # samples at the image border have neighbours beyond it: not seen through when strict
+    border_labels = np.zeros_like(labels)
+    border_labels[:, :8] = 1
+    near_border = np.full_like(frame_depth, 2.0)
+    near_border[:, :8] = 1.0
+    view = DepthView(np.full((30, 40), 2.0, dtype=np.float32), np.eye(4), 4)
+    lenient, _ = free_space_violations(near_border, border_labels, np.eye(4), intrinsics, view, 2, _Noise(), 0.05)
+    strict, _ = free_space_violations(near_border, border_labels, np.eye(4), intrinsics, view, 2, _Noise(), 0.05,
+                                      measured_only=True)
+    assert lenient[1] == 2 * 30 and strict[1] == 28  # the first column and the top and bottom rows drop out
+
+
 def test_depth_adjacency_joins_edges_not_occlusions():
     depth = np.full((40, 60), 1.0, dtype=np.float32)
     labels = np.zeros((40, 60), dtype=np.int32)

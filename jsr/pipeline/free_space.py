@@ -31,6 +31,9 @@ class DepthView:
     nearest valid depth within ``(2 r + 1)^2`` samples (``r = near_radius``): space counts as
     seen empty only where the whole neighbourhood was seen farther away, so that thin structures,
     depth edges and a colour-to-depth misregistration of a few pixels do not look like violations.
+    ``measured_near_depth`` is the same but 0 where a neighbour has no depth: the stricter test
+    of :meth:`seen_through` with ``measured_only``, for which a hole next to the sample may hide
+    a surface (a translucent or dark object that returned no depth to that view).
     """
 
     depth: np.ndarray
@@ -38,18 +41,26 @@ class DepthView:
     stride: int
     near_radius: int = 1
     near_depth: np.ndarray | None = None
+    measured_near_depth: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        size = 2 * self.near_radius + 1
+        kernel = np.ones((size, size), np.uint8)
+        depth = np.asarray(self.depth, dtype=np.float32)
         if self.near_depth is None:
-            far = np.where(self.depth > 0, self.depth, np.float32(1e6)).astype(np.float32)
-            size = 2 * self.near_radius + 1
-            near = cv2.erode(far, np.ones((size, size), np.uint8))
+            far = np.where(depth > 0, depth, np.float32(1e6))
+            near = cv2.erode(far, kernel)
             self.near_depth = np.where(near < 1e6, near, 0.0).astype(np.float32)
+        if self.measured_near_depth is None:
+            # 0 where a neighbour has no depth (a hole, a blanked region, beyond the border)
+            self.measured_near_depth = cv2.erode(depth, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0.0)
 
-    def sample(self, in_view: np.ndarray, intrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def sample(self, in_view: np.ndarray, intrinsics, measured_only: bool = False
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(N, 3)`` points in this view's camera frame projected into it: per point whether
         it falls in the image in front of the camera, the depth the view measured there and
-        its ``near_depth`` (each ``(N,)``; 0 outside)."""
+        its ``near_depth`` (``measured_near_depth`` with ``measured_only``; each ``(N,)``; 0
+        outside)."""
         z = in_view[:, 2]
         ahead = z > 1e-3
         safe = np.where(ahead, z, 1.0)
@@ -59,16 +70,18 @@ class DepthView:
         inside = ahead & (u >= 0) & (u < width) & (v >= 0) & (v < height)
         seen, nearest = np.zeros(len(z)), np.zeros(len(z))
         seen[inside] = self.depth[v[inside], u[inside]]
-        nearest[inside] = self.near_depth[v[inside], u[inside]]
+        near_depth = self.measured_near_depth if measured_only else self.near_depth
+        nearest[inside] = near_depth[v[inside], u[inside]]
         return inside, seen, nearest
 
-    def seen_through(self, in_view: np.ndarray, intrinsics, noise, margin: float, sigmas: float
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def seen_through(self, in_view: np.ndarray, intrinsics, noise, margin: float, sigmas: float,
+                     measured_only: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(N, 3)`` points in this view's camera frame: per point whether the view measured
         depth where it projects, whether the view saw through it (its whole neighbourhood
         farther than the point by more than ``max(margin, sigmas * sigma_Z)``, sigma_Z of the
-        measured depth), and that depth (each ``(N,)``)."""
-        inside, seen, nearest = self.sample(in_view, intrinsics)
+        measured depth; with ``measured_only`` every neighbour must have depth), and that
+        depth (each ``(N,)``)."""
+        inside, seen, nearest = self.sample(in_view, intrinsics, measured_only)
         measured = inside & (seen > 0)
         threshold = np.maximum(margin, sigmas * noise.sigma_z_coefficient * seen**2)
         through = measured & (nearest > 0) & (in_view[:, 2] < nearest - threshold)
@@ -85,9 +98,11 @@ def free_space_violations(
     noise,
     margin: float,
     sigmas: float | None = None,
+    measured_only: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per segment ``(S,)`` counts of sampled pixels that lie in space an earlier view saw as
-    empty (*violations*) and of pixels that agree with that view (*consistent*).
+    empty (*violations*; ``measured_only``: see :meth:`DepthView.seen_through`) and of pixels
+    that agree with that view (*consistent*).
 
     Every ``view.stride``-th valid pixel of the frame is moved into the earlier view's camera
     and projected; it violates free space when it is closer to that camera than the surface the
@@ -110,7 +125,7 @@ def free_space_violations(
     T_view_cam = np.linalg.inv(view.T_w_c) @ T_w_c
     in_view = camera @ T_view_cam[:3, :3].T + T_view_cam[:3, 3]
     usable, closer, seen = view.seen_through(in_view, intrinsics, noise, margin,
-                                             noise.inlier_sigmas if sigmas is None else sigmas)
+                                             noise.inlier_sigmas if sigmas is None else sigmas, measured_only)
     # agreement uses the registration's tight inlier threshold: between it and the violation
     # margin a pixel is neither (uncertain)
     agrees = usable & (np.abs(in_view[:, 2] - seen) <= np.maximum(
@@ -168,11 +183,13 @@ class FreeSpaceViews:
         return all(keyframes[keyframe_id].frame_index > after_frame for keyframe_id, _ in self.views)
 
     def counts(self, keyframes: list[Keyframe], depth: np.ndarray, label_image: np.ndarray, num_segments: int,
-               T_w_c: np.ndarray, after_frame: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+               T_w_c: np.ndarray, after_frame: int | None = None, measured_only: bool = False
+               ) -> tuple[np.ndarray, np.ndarray]:
         """Per segment ``(S,)``: sampled pixels of a frame (``depth`` and ``label_image`` ``(H, W)``,
         camera pose ``T_w_c``) lying in space the views saw as empty (violations), and pixels
         agreeing with the surface they saw (consistent). ``after_frame``: only the views of
-        keyframes of later frames."""
+        keyframes of later frames. ``measured_only``: space counts as seen empty only where the
+        views measured depth all around (:meth:`DepthView.seen_through`)."""
         config = self.config.objects
         per_view = []
         for keyframe_id, view in self.views:
@@ -181,7 +198,7 @@ class FreeSpaceViews:
             view.T_w_c = keyframes[keyframe_id].T_map_cam  # after bundle adjustment
             per_view.append(free_space_violations(depth, label_image, T_w_c, self.intrinsics, view, num_segments,
                                                   self.config.noise, config.free_space_margin,
-                                                  config.free_space_sigmas))
+                                                  config.free_space_sigmas, measured_only))
         if not per_view:
             zeros = np.zeros(num_segments, dtype=np.int64)
             return zeros, zeros.copy()

@@ -255,6 +255,7 @@ class FrameContext:
     force_static_keyframe: bool = False
     adjacency: np.ndarray | None = None  # (E, 2) depth-adjacent segment pairs
     free_space: tuple[np.ndarray, np.ndarray] | None = None  # (S,) violations, (S,) consistent
+    measured_free_space: tuple[np.ndarray, np.ndarray] | None = None  # the same, measured_only
 
     @property
     def T_w_c(self) -> np.ndarray | None:
@@ -297,6 +298,17 @@ class FrameContext:
         if self.free_space is None:
             self.free_space = self._counts(state, None)
         return self.free_space
+
+    def measured_free_space_counts(self, state: SceneState) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`free_space_counts` where space counts as seen empty only if the views measured
+        depth all around it (``measured_only``), computed once: the evidence that confirms a
+        candidate (:mod:`~jsr.pipeline.confirmation`)."""
+        if self.measured_free_space is None:
+            segments = self.measurements.segments
+            self.measured_free_space = state.free_space.counts(
+                state.static_map.keyframes, self.frame.depth, segments.label_image, len(segments), self.T_w_c,
+                measured_only=True)
+        return self.measured_free_space
 
     def free_space_since(self, state: SceneState, after_frame: int) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`free_space_counts` over the static keyframes of frames after ``after_frame``
