@@ -524,3 +524,40 @@ def test_a_refinement_that_loses_fit_and_texture_is_not_kept():
     slid = make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.radians(50.0)), [0.0, 0.0, 0.03]) @ camera
     np.testing.assert_array_equal(_kept_refinement(region, cylinder, tree, camera, slid, VOXEL), camera)
     np.testing.assert_array_equal(_kept_refinement(region, cylinder, tree, slid, camera, VOXEL), camera)
+
+
+def test_segments_off_the_object_surface_are_found():
+    """A region re-identified as one object whose segments include another object (two objects
+    moved side by side): the segment off the object's surface is named, the ones on it are not,
+    and nothing is named when no other object is lost."""
+    from types import SimpleNamespace
+
+    from jsr.config import load_config
+    from jsr.geometry import backproject_pixels
+    from jsr.pipeline.object_registration import ObjectTrackingResult
+    from jsr.pipeline.reidentification import off_surface
+    from jsr.pipeline.surfaces import SurfaceModel
+    from jsr.synth.scene import synth_intrinsics
+
+    intrinsics = synth_intrinsics(160, 120)
+    depth = np.zeros((120, 160), dtype=np.float32)
+    labels = np.full((120, 160), -1, dtype=np.int32)
+    depth[30:90, 20:70], labels[30:90, 20:70] = 1.0, 0  # the object's face, on its model
+    depth[30:90, 70:80], labels[30:90, 70:80] = 1.0, 1  # a strip of the same face
+    depth[30:90, 95:140], labels[30:90, 95:140] = 0.8, 2  # another object beside it
+    rows, cols = np.nonzero((labels == 0) | (labels == 1))
+    points = backproject_pixels(cols, rows, depth[rows, cols].astype(np.float64), intrinsics.fx, intrinsics.fy,
+                                intrinsics.cx, intrinsics.cy)
+    model = SurfaceModel(points, np.tile([0.0, 0.0, -1.0], (len(points), 1)), np.full((len(points), 3), 0.5))
+    first = SimpleNamespace(object_id=1, confirmed=True, dormant=False)
+    second = SimpleNamespace(object_id=2, confirmed=True, dormant=True)
+    state = SimpleNamespace(config=load_config(None, []), intrinsics=intrinsics, object_maps=[first, second],
+                            surfaces=SimpleNamespace(model=lambda object_map: model))
+    outcome = ObjectTrackingResult(first, frame_result=SimpleNamespace(success=True, transformation=np.eye(4)))
+    ctx = SimpleNamespace(frame=SimpleNamespace(depth=depth, color=np.zeros((120, 160, 3), np.uint8)),
+                          measurements=SimpleNamespace(segments=SimpleNamespace(label_image=labels)),
+                          outcomes=[outcome])
+    assert off_surface(state, ctx, [0, 1, 2], outcome) == [2]
+    second.dormant = False  # the other object is tracked in this frame: no one else to find there
+    ctx.outcomes.append(SimpleNamespace(object_map=second, success=True))
+    assert off_surface(state, ctx, [0, 1, 2], outcome) == []

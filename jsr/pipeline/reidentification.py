@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from jsr.pipeline.association import match_frame_to_map
 from jsr.pipeline.map_updates import claim_region
@@ -19,7 +20,10 @@ from jsr.pipeline.maps import ObjectMap
 from jsr.pipeline.object_registration import ObjectTrackingResult
 from jsr.pipeline.registration import register
 from jsr.pipeline.shape_reidentification import reidentify_by_shape
+from jsr.pipeline.object_surfaces import SURFACE_STRIDE
 from jsr.pipeline.state import FrameContext, SceneState
+from jsr.pipeline.surface_evidence import share_on_surface
+from jsr.pipeline.surfaces import sample_surface
 
 logger = logging.getLogger(__name__)
 
@@ -32,7 +36,63 @@ def reidentify(state: SceneState, ctx: FrameContext, group: list[int], group_poi
     :func:`~jsr.pipeline.shape_reidentification.reidentify_by_shape` tries the region's surface
     (``objects.shape_reidentify``). ``group``: the region's segments; ``group_points``: its
     point measurements no object has; ``outcomes``: this frame's object registrations by
-    object id (a dormant object found gets one, added to ``ctx.outcomes`` too)."""
+    object id (a dormant object found gets one, added to ``ctx.outcomes`` too).
+
+    The segments of a re-identified region that lie off its object's surface at the found pose
+    (:func:`off_surface`) may be another lost object that moved beside it, in the same frame:
+    each is tried as a region of its own, and stays with the first object when no other is
+    found there (a face of it that no view has seen yet). redkitchen_s4_two_sim, frame 40: a
+    box and a cylinder moved together; the box's surface took the region with the cylinder in
+    it, and the two maps were later merged into one."""
+    if not _reidentify_region(state, ctx, group, group_points, outcomes):
+        return False
+    object_id = int(ctx.assignment.segment_owner[group[0]])
+    assignment, segments = ctx.assignment, ctx.measurements.segments
+    for segment in off_surface(state, ctx, group, outcomes[object_id]):
+        points = segments.point_indices[segment]
+        points = points[assignment.point_owner[points] == object_id].astype(np.int64)
+        assignment.segment_owner[segment] = 0
+        assignment.point_owner[points] = 0
+        if _reidentify_region(state, ctx, [segment], points, outcomes):
+            logger.info("frame %d: segment %d of region %s lies off object %d's surface: it is object %d",
+                        ctx.frame.index, segment, group, object_id, int(assignment.segment_owner[segment]))
+        else:  # no other object there: back to the first
+            assignment.segment_owner[segment] = object_id
+            assignment.point_owner[points] = object_id
+    return True
+
+
+def off_surface(state: SceneState, ctx: FrameContext, group: list[int], outcome: ObjectTrackingResult) -> list[int]:
+    """The segments of ``group`` (claimed by ``outcome``'s object) with less than half of their
+    surface samples on the object's surface model at its pose in this frame (within 1.5
+    ``objects.shape_voxel``); none unless some other lost object could be there and some
+    segment does lie on the surface."""
+    object_map = outcome.object_map
+    if len(group) < 2 or outcome.T_o_c is None or not any(
+            m is not object_map and m.confirmed and (m.dormant or not _tracked(m, ctx)) for m in state.object_maps):
+        return []
+    model = state.surfaces.model(object_map)
+    if model is None:
+        return []
+    tree = cKDTree(model.points)
+    voxel = state.config.objects.shape_voxel
+    labels = ctx.measurements.segments.label_image
+    off = []
+    for segment in group:
+        sample = sample_surface(ctx.frame.depth, ctx.frame.color, labels == segment, state.intrinsics,
+                                SURFACE_STRIDE, 0.5 * voxel)
+        if len(sample.points) and share_on_surface(sample.points, tree, outcome.T_o_c, voxel) < 0.5:
+            off.append(int(segment))
+    return off if len(off) < len(group) else []
+
+
+def _tracked(object_map: ObjectMap, ctx: FrameContext) -> bool:
+    """Whether ``object_map`` was registered in this frame."""
+    return any(o.object_map is object_map and o.success for o in ctx.outcomes)
+
+
+def _reidentify_region(state: SceneState, ctx: FrameContext, group: list[int], group_points: np.ndarray,
+                       outcomes: dict[int, ObjectTrackingResult]) -> bool:
     measurements = ctx.measurements
     lost = lost_objects(state, ctx, group_points, outcomes)
     for object_map in lost:
