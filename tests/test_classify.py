@@ -93,12 +93,14 @@ def test_failed_registrations_are_ignored():
     assert not points.any() and not planes.any()
 
 
-def test_matching_segment_beats_inlier_of_another_object():
-    # Object 1 has many frame inliers everywhere; object 2 matched segment 0 only.
-    big = _registration(1, frame_success=True, frame_points=range(9), frame_planes=[0, 1])
+def test_inlier_beats_matching_segment_of_another_object():
+    # Object 1 has frame inliers at points 1-8 and plane 1; object 2 matched segment 0 only.
+    # A feature one map explains within the noise stays with it; the rest of the segment
+    # (point 0, plane 0) goes to the map that matched it.
+    big = _registration(1, frame_success=True, frame_points=range(1, 9), frame_planes=[1])
     small = _registration(2, segment_success=True, matching=[0])
     points, planes = _classify(big, small)
-    np.testing.assert_array_equal(points, [2, 2, 2, 1, 1, 1, 1, 1, 1, 0, 0, 0])
+    np.testing.assert_array_equal(points, [2, 1, 1, 1, 1, 1, 1, 1, 1, 0, 0, 0])
     np.testing.assert_array_equal(planes, [2, 1, 0, 0])
     # Order of the registrations does not matter.
     points2, planes2 = _classify(small, big)
@@ -118,7 +120,8 @@ def test_equal_claims_go_to_the_registration_with_more_inliers():
                       segment_points=[9, 10])  # 3 distinct inliers
     d = _registration(6, segment_success=True, matching=[1, 2], segment_points=[3])  # 1 inlier
     points, planes = _classify(d, c)
-    np.testing.assert_array_equal(points, [5, 0, 0, 5, 5, 5, 6, 6, 6, 5, 5, 0])
+    # point 3 is 6's inlier in a segment both matched: the inlier decides
+    np.testing.assert_array_equal(points, [5, 0, 0, 6, 5, 5, 6, 6, 6, 5, 5, 0])
     np.testing.assert_array_equal(planes, [0, 5, 6, 0])
 
 

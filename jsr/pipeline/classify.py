@@ -12,10 +12,15 @@ For every point and plane measurement of the frame:
 Only registrations that succeeded count: the inliers of a failed frame-based registration,
 and the matching segments and inliers of a failed segment-based registration, are ignored.
 
-When several object maps claim one measurement, a matching-segment claim beats an inlier
-claim; between claims of the same kind, the object map with more inliers wins (its counted
-inliers: the union of the successful frame- and segment-based inlier masks, points plus
-planes), and on equal counts the smaller ``object_id``.
+When several object maps claim one measurement, an inlier claim beats a matching-segment
+claim: a feature that one map's registration explains within the noise is direct evidence,
+a segment matched to another map only groups it (a segment that spans two objects standing
+together: redkitchen_s3_two_jump, frame 29, a cylinder's segment-based registration took the
+box's features in it, and the two maps were merged in the next frame). Between claims of the
+same kind, the object map with more inliers wins (its counted inliers: the union of the
+successful frame- and segment-based inlier masks, points plus planes), and on equal counts
+the smaller ``object_id``. Likewise a map's matching segment is its own only when no other
+map's registration has more inliers in it.
 
 Beyond the paper, :func:`classify_frame` completes segments (a segment whose registered
 inliers mostly belong to one object goes to that object as a whole), grows objects into the
@@ -42,8 +47,8 @@ logger = logging.getLogger(__name__)
 STATIC = 0
 
 _NO_CLAIM = 0
-_INLIER_CLAIM = 1
-_SEGMENT_CLAIM = 2
+_SEGMENT_CLAIM = 1
+_INLIER_CLAIM = 2
 
 
 @dataclass
@@ -100,8 +105,8 @@ def _claims(
         if len(matching):
             in_matching = (measurement_segment >= 0) & np.isin(measurement_segment, matching)
     claims = np.full(count, _NO_CLAIM, dtype=np.int64)
-    claims[inlier] = _INLIER_CLAIM
     claims[in_matching] = _SEGMENT_CLAIM
+    claims[inlier] = _INLIER_CLAIM
     return claims
 
 
@@ -276,9 +281,14 @@ def classify_frame(state: SceneState, ctx: FrameContext) -> None:
         point_owner = np.where(in_object_segment, segment_owner[np.maximum(point_segment, 0)], point_owner)
         plane_in_object = (plane_segment >= 0) & (segment_owner[np.maximum(plane_segment, 0)] > 0)
         plane_owner = np.where(plane_in_object, segment_owner[np.maximum(plane_segment, 0)], plane_owner)
-    for r in tracked:  # the seed segments of segment-based registration belong to their object
+    # the seed segments of segment-based registration belong to their object, unless another
+    # object's registration has more inliers in the segment
+    inliers_in = {r.object_id: np.bincount(point_segment[(point_segment >= 0) & (
+        r.frame_inliers_points | r.segment_inliers_points)], minlength=len(segments)) for r in tracked}
+    for r in tracked:
         for segment in r.matching_segments if r.segment_success else []:
-            segment_owner[segment] = r.object_id
+            if all(inliers_in[o][segment] <= inliers_in[r.object_id][segment] for o in inliers_in):
+                segment_owner[segment] = r.object_id
     assignment = FrameAssignment(point_owner.astype(np.int64), plane_owner.astype(np.int64), segment_owner)
     if tracked and config.objects.split_mixed_segments:
         object_inliers = np.zeros(num_points, dtype=bool)
