@@ -65,8 +65,8 @@ def reidentify(state: SceneState, ctx: FrameContext, group: list[int], group_poi
 def off_surface(state: SceneState, ctx: FrameContext, group: list[int], outcome: ObjectTrackingResult) -> list[int]:
     """The segments of ``group`` (claimed by ``outcome``'s object) with less than half of their
     surface samples on the object's surface model at its pose in this frame (within 1.5
-    ``objects.shape_voxel``); none unless some other lost object could be there and some
-    segment does lie on the surface."""
+    ``objects.shape_voxel``), least on it first; none unless some other lost object could be
+    there and some segment does lie on the surface."""
     object_map = outcome.object_map
     if len(group) < 2 or outcome.T_o_c is None or not any(
             m is not object_map and m.confirmed and (m.dormant or not _tracked(m, ctx)) for m in state.object_maps):
@@ -81,9 +81,12 @@ def off_surface(state: SceneState, ctx: FrameContext, group: list[int], outcome:
     for segment in group:
         sample = sample_surface(ctx.frame.depth, ctx.frame.color, labels == segment, state.intrinsics,
                                 SURFACE_STRIDE, 0.5 * voxel)
-        if len(sample.points) and share_on_surface(sample.points, tree, outcome.T_o_c, voxel) < 0.5:
-            off.append(int(segment))
-    return off if len(off) < len(group) else []
+        share = share_on_surface(sample.points, tree, outcome.T_o_c, voxel) if len(sample.points) else 1.0
+        if share < 0.5:
+            off.append((share, int(segment)))
+    # least on the surface first: the likeliest other object, found before a new face of this
+    # one is tried against it (each try may cost a surface alignment)
+    return [segment for _, segment in sorted(off)] if len(off) < len(group) else []
 
 
 def _tracked(object_map: ObjectMap, ctx: FrameContext) -> bool:
