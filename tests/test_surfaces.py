@@ -555,9 +555,9 @@ def test_segments_off_the_object_surface_are_found():
                             surfaces=SimpleNamespace(model=lambda object_map: model))
     outcome = ObjectTrackingResult(first, frame_result=SimpleNamespace(success=True, transformation=np.eye(4)))
     ctx = SimpleNamespace(frame=SimpleNamespace(depth=depth, color=np.zeros((120, 160, 3), np.uint8)),
-                          measurements=SimpleNamespace(segments=SimpleNamespace(label_image=labels)),
-                          outcomes=[outcome])
-    assert off_surface(state, ctx, [0, 1, 2], outcome) == [2]
+                          measurements=SimpleNamespace(segments=SimpleNamespace(label_image=labels)))
+    outcomes = {1: outcome}
+    assert off_surface(state, ctx, [0, 1, 2], outcome, outcomes) == [2]
     second.dormant = False  # the other object is tracked in this frame: no one else to find there
-    ctx.outcomes.append(SimpleNamespace(object_map=second, success=True))
-    assert off_surface(state, ctx, [0, 1, 2], outcome) == []
+    outcomes[2] = SimpleNamespace(object_map=second, success=True)
+    assert off_surface(state, ctx, [0, 1, 2], outcome, outcomes) == []

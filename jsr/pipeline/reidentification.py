@@ -48,7 +48,7 @@ def reidentify(state: SceneState, ctx: FrameContext, group: list[int], group_poi
         return False
     object_id = int(ctx.assignment.segment_owner[group[0]])
     assignment, segments = ctx.assignment, ctx.measurements.segments
-    for segment in off_surface(state, ctx, group, outcomes[object_id]):
+    for segment in off_surface(state, ctx, group, outcomes[object_id], outcomes):
         points = segments.point_indices[segment]
         points = points[assignment.point_owner[points] == object_id].astype(np.int64)
         assignment.segment_owner[segment] = 0
@@ -62,14 +62,15 @@ def reidentify(state: SceneState, ctx: FrameContext, group: list[int], group_poi
     return True
 
 
-def off_surface(state: SceneState, ctx: FrameContext, group: list[int], outcome: ObjectTrackingResult) -> list[int]:
+def off_surface(state: SceneState, ctx: FrameContext, group: list[int], outcome: ObjectTrackingResult,
+                outcomes: dict[int, ObjectTrackingResult]) -> list[int]:
     """The segments of ``group`` (claimed by ``outcome``'s object) with less than half of their
     surface samples on the object's surface model at its pose in this frame (within 1.5
-    ``objects.shape_voxel``), least on it first; none unless some other lost object could be
-    there and some segment does lie on the surface."""
+    ``objects.shape_voxel``), least on it first; none unless some other object is lost
+    (:func:`is_lost`, ``outcomes`` by object id) and some segment does lie on the surface."""
     object_map = outcome.object_map
     if len(group) < 2 or outcome.T_o_c is None or not any(
-            m is not object_map and m.confirmed and (m.dormant or not _tracked(m, ctx)) for m in state.object_maps):
+            m is not object_map and is_lost(m, outcomes) for m in state.object_maps):
         return []
     model = state.surfaces.model(object_map)
     if model is None:
@@ -89,9 +90,11 @@ def off_surface(state: SceneState, ctx: FrameContext, group: list[int], outcome:
     return [segment for _, segment in sorted(off)] if len(off) < len(group) else []
 
 
-def _tracked(object_map: ObjectMap, ctx: FrameContext) -> bool:
-    """Whether ``object_map`` was registered in this frame."""
-    return any(o.object_map is object_map and o.success for o in ctx.outcomes)
+def is_lost(object_map: ObjectMap, outcomes: dict[int, ObjectTrackingResult]) -> bool:
+    """Whether ``object_map`` is an object (not a candidate) not tracked in this frame: dormant,
+    or its registration (in ``outcomes`` by object id) failed."""
+    outcome = outcomes.get(object_map.object_id)
+    return object_map.confirmed and (object_map.dormant or (outcome is not None and not outcome.success))
 
 
 def _reidentify_region(state: SceneState, ctx: FrameContext, group: list[int], group_points: np.ndarray,
@@ -118,8 +121,7 @@ def lost_objects(state: SceneState, ctx: FrameContext, group_points: np.ndarray,
     most alike first (the best VLAD similarity of the region's point descriptors to the
     segments of each), at most ``objects.reidentify_maps`` of them. A dormant object is given
     an empty registration in ``outcomes`` and ``ctx.outcomes`` (it was not registered)."""
-    lost = [m for m in state.object_maps if m.confirmed and (
-        m.dormant or (outcomes.get(m.object_id) is not None and not outcomes[m.object_id].success))]
+    lost = [m for m in state.object_maps if is_lost(m, outcomes)]
     if len(lost) > state.config.objects.reidentify_maps and state.vocabulary is not None:
         vlad = state.vocabulary.encode(ctx.measurements.points.descriptors[group_points])
         similarity = {}

@@ -304,10 +304,7 @@ class FrameContext:
         depth all around it (``measured_only``), computed once: the evidence that confirms a
         candidate (:mod:`~jsr.pipeline.confirmation`)."""
         if self.measured_free_space is None:
-            segments = self.measurements.segments
-            self.measured_free_space = state.free_space.counts(
-                state.static_map.keyframes, self.frame.depth, segments.label_image, len(segments), self.T_w_c,
-                measured_only=True)
+            self.measured_free_space = self._counts(state, None, measured_only=True)
         return self.measured_free_space
 
     def free_space_since(self, state: SceneState, after_frame: int) -> tuple[np.ndarray, np.ndarray]:
@@ -317,7 +314,9 @@ class FrameContext:
             return self.free_space_counts(state)
         return self._counts(state, after_frame)
 
-    def _counts(self, state: SceneState, after_frame: int | None) -> tuple[np.ndarray, np.ndarray]:
+    def _counts(self, state: SceneState, after_frame: int | None, measured_only: bool = False
+                ) -> tuple[np.ndarray, np.ndarray]:
         segments = self.measurements.segments
         return state.free_space.counts(state.static_map.keyframes, self.frame.depth, segments.label_image,
-                                       len(segments), self.T_w_c, after_frame=after_frame)
+                                       len(segments), self.T_w_c, after_frame=after_frame,
+                                       measured_only=measured_only)
