@@ -105,7 +105,8 @@ def _candidate_state(candidacy: Candidacy, confirm_frames=3, window=6, rigid_fra
     state = SimpleNamespace(config=config, object_maps=[object_map], keyframe_masks={9: np.full((2, 2), 5, np.uint8)},
                             bundle=SimpleNamespace(finish=lambda m: None), segment_index=SimpleNamespace(
                                 remove_map=lambda object_id: None), static_map=Map("static"), dissolved=[],
-                            non_rigid=[])
+                            non_rigid=[], forgotten=[])
+    state.free_space = SimpleNamespace(forget_surface=lambda keyframes, points: state.forgotten.append(len(points)) or 0)
     assignment = FrameAssignment(np.array([5, 0, 5]), np.zeros(0, np.int64), np.array([0, 5, 5]))
     report = SimpleNamespace(objects_created=[], objects_tracked=[])
     ctx = SimpleNamespace(frame=SimpleNamespace(index=candidacy.born + 4), outcomes=[], unexplained=set(),
@@ -119,6 +120,7 @@ def test_a_candidate_that_moved_rigidly_is_confirmed():
     weigh_maps(state, ctx)
     assert object_map.confirmed and ctx.report.objects_created == [5]
     assert state.dissolved == [] and state.non_rigid == []
+    assert state.forgotten == [0]  # its old place (no evidence landmarks here) forgotten in the free-space views
 
 
 def test_a_candidate_no_rigid_motion_explains_is_dynamic():

@@ -1589,3 +1589,74 @@ def test_surface_alignment_is_drawn_again_while_nothing_is_kept(monkeypatch):
         assert len(seen) == calls
         assert all(args[4] is seen[0][4] for args in seen)  # one region model, reused
         reconstructor.close()
+
+
+@pytest.mark.parametrize("in_place, grown", [(False, [0, 1]), (True, [0])])
+def test_segment_of_outliers_grows_only_if_its_landmarks_left(monkeypatch, in_place, grown):
+    """A segment beside an object where the static keyframes saw a surface, all 20 of its
+    static matches outliers: the object's own face before it jumped, unless its outlier
+    landmarks are still found in place (a carpet whose matches went to look-alikes)."""
+    import jsr.pipeline.region_growth as region_growth
+    from jsr.synth.scene import synth_intrinsics
+
+    reconstructor = Reconstructor(load_config(None), synth_intrinsics(640, 480))
+    asked = []
+    monkeypatch.setattr(region_growth, "mostly_in_place",
+                        lambda state, ctx, segment, inliers, minimum: asked.append(segment) or in_place)
+    segments = _FrameSegments([np.arange(0, 20), np.arange(20, 40)])
+    measurements = SimpleNamespace(segments=segments, points=_FramePoints(has_depth=np.ones(40, dtype=bool)),
+                                   frame_index=5)
+    ctx = _frame_context(measurements, adjacency=np.array([[0, 1]]),
+                         free_space=(np.array([0, 0]), np.array([0, 60])))  # segment 1: a surface seen before
+    ctx.static = SimpleNamespace(bridged=False, matched=SimpleNamespace(point_measurements=np.arange(20, 40)))
+    assert grow(reconstructor.state, ctx, [0], np.zeros(40, dtype=bool), np.array([1, 0])) == grown
+    assert asked == [1]
+    reconstructor.close()
+
+
+def test_segment_much_wider_than_its_object_is_mixed():
+    """classify.wider_than_object: a segment given to a 0.3 m object that spans 1.2 m of
+    surface holds more than the object; one as wide as the object, or one given to an object
+    with no extent yet, does not."""
+    from scipy.spatial import ConvexHull
+
+    from jsr.pipeline.classify import wider_than_object
+    from jsr.synth.scene import synth_intrinsics
+
+    intrinsics = synth_intrinsics(640, 480)
+    labels = np.full((480, 640), -1, dtype=np.int32)
+    labels[200:280, 280:360] = 0  # about 0.17 m wide at 1 m
+    labels[300:480, 40:600] = 1  # about 1.2 m
+    labels[0:100, 0:100] = 2  # given to an object without an extent
+    corners = np.array([[x, y, z] for x in (0, 0.3) for y in (0, 0.2) for z in (0, 0.15)])
+    hulls = {1: ConvexHull(corners), 2: None}
+    wide = wider_than_object(labels, np.ones((480, 640), dtype=np.float32), intrinsics, np.array([1, 1, 2, 0]),
+                             hulls)
+    assert wide.tolist() == [False, True, False, False]
+
+
+def test_forgetting_a_moved_objects_surface_blanks_it_in_the_views():
+    """FreeSpaceViews.forget_surface: where a view saw the static landmarks of an object that
+    has since moved (a 0.4 m face 2 m away in front of a wall at 3 m), its samples are blanked
+    with a one-sample margin, so that the object coming back there is not "consistent" with
+    the view; the wall around it, and a stray landmark matched on it, are untouched."""
+    from jsr.synth.scene import synth_intrinsics
+
+    intrinsics = synth_intrinsics(160, 120)
+    depth = np.full((30, 40), 3.0, dtype=np.float32)
+    views = FreeSpaceViews(load_config(None), intrinsics)
+    keyframes = [SimpleNamespace(T_map_cam=np.eye(4))]
+    rows, cols = np.mgrid[8:16, 12:20]  # the face's samples (stride 4)
+    depth[rows, cols] = 2.0
+    views.views.append((0, DepthView(depth.copy(), np.eye(4), 4)))
+    u, v = cols.ravel() * 4.0, rows.ravel() * 4.0
+    face = np.column_stack([(u - intrinsics.cx) / intrinsics.fx * 2.0, (v - intrinsics.cy) / intrinsics.fy * 2.0,
+                            np.full(len(u), 2.0)])
+    stray = np.array([[(130 - intrinsics.cx) / intrinsics.fx * 3.0, 0.0, 3.0]])  # on the wall, far off
+    blanked = views.forget_surface(keyframes, np.vstack([face[[0, 7, 20, 35, 56, 63]], stray]))  # corners, inside
+    view = views.views[0][1]
+    expected = np.zeros((30, 40), dtype=bool)
+    expected[7:17, 11:21] = True  # the hull of the face's landmarks, one sample wider
+    assert blanked == expected.sum()
+    assert (view.depth[expected] == 0).all() and (view.depth[~expected] == depth[~expected]).all()
+    assert (view.near_depth[~expected] > 0).all()  # the lenient minimum ignores the blanked samples

@@ -37,7 +37,8 @@ import numpy as np
 
 from jsr.pipeline.association import inlier_mask
 from jsr.pipeline.measurements import Segments
-from jsr.pipeline.object_extent import extent_hull, largest_spread, pixels_inside_hull, segments_inside_extent
+from jsr.pipeline.object_extent import (SIZE_FACTOR, extent_hull, largest_spread, pixels_inside_hull,
+                                       segment_widths, segments_inside_extent)
 from jsr.pipeline.object_registration import ObjectTrackingResult
 from jsr.pipeline.region_growth import grow
 from jsr.pipeline.state import FrameAssignment, FrameContext, SceneState
@@ -302,8 +303,9 @@ def split_mixed_segments(state: SceneState, ctx: FrameContext, assignment: Frame
                          static_evidence: np.ndarray, outcomes: dict[int, ObjectTrackingResult], hulls: dict) -> None:
     """Beyond the paper, which takes segments to be parts of one surface: a segment given
     to an object that also holds ``detection.min_segment_features`` static-registration
-    inliers (``static_evidence`` ``(N,)``: not inliers of any object) spans the object and
-    the static scene (a box standing on a table, in one depth segment). Its static inliers,
+    inliers (``static_evidence`` ``(N,)``: not inliers of any object), or that is wider than
+    the object can be (:func:`wider_than_object`), spans the object and the static scene (a
+    box standing on a table, in one depth segment). Its static inliers,
     and its features outside the object's extent (:func:`pixels_inside_hull`), stay static;
     only its pixels inside that extent go into the object's mask; a plane that is such a
     segment stays static (``objects.split_mixed_segments``)."""
@@ -314,7 +316,9 @@ def split_mixed_segments(state: SceneState, ctx: FrameContext, assignment: Frame
     evidence = static_evidence & (owner_of_point > 0)
     counts = np.bincount(point_segment[evidence], minlength=len(segments)) if evidence.any() else \
         np.zeros(len(segments), dtype=np.int64)
-    mixed = np.flatnonzero((counts >= config.detection.min_segment_features) & (assignment.segment_owner > 0))
+    mixed = (counts >= config.detection.min_segment_features) & (assignment.segment_owner > 0)
+    mixed |= wider_than_object(segments.label_image, frame.depth, state.intrinsics, assignment.segment_owner, hulls)
+    mixed = np.flatnonzero(mixed)
     if not len(mixed):
         return
     in_mixed = np.isin(point_segment, mixed)
@@ -343,3 +347,23 @@ def split_mixed_segments(state: SceneState, ctx: FrameContext, assignment: Frame
         logger.debug("frame %d: segment %d is mixed (%d static inliers); %d of %d pixels are object %d",
                      measurements.frame_index, segment, counts[segment], int(inside.sum()), len(rows), object_id)
     assignment.not_object_pixels = not_object
+
+
+def wider_than_object(label_image: np.ndarray, depth: np.ndarray, intrinsics, segment_owner: np.ndarray,
+                      hulls: dict) -> np.ndarray:
+    """``(S,)`` bool: segments given to an object (``segment_owner`` ``(S,)``; ``label_image``
+    and ``depth`` ``(H, W)``, the frame's) whose surface is more than ``SIZE_FACTOR`` times
+    wider than everything known of that object (its extent hull, ``hulls`` by object id; none:
+    nothing is known). Such a segment holds more than the object, even where the static
+    registration has few inliers to show it: a repetitive carpet, most of whose features match
+    look-alikes (redkitchen_s4_two_sim, seed 14, frame 31: a cylinder resting on the floor got
+    the whole 40,000-pixel floor segment from a dozen of its landmarks there)."""
+    wide = np.zeros(len(segment_owner), dtype=bool)
+    owned = np.flatnonzero(segment_owner > 0)
+    if not len(owned):
+        return wide
+    widths = segment_widths(label_image, depth, intrinsics, owned)
+    for segment, width in zip(owned, widths):
+        hull = hulls.get(int(segment_owner[segment]))
+        wide[segment] = hull is not None and width > SIZE_FACTOR * largest_spread(hull.points)
+    return wide

@@ -252,6 +252,12 @@ def _decide(state: SceneState, ctx: FrameContext, object_map: ObjectMap, outcome
     age = ctx.frame.index - candidacy.born
     if candidacy.motion_frames >= detection.confirm_frames and object_map.rigid_frames > object_map.nonrigid_frames:
         object_map.candidacy = None
+        # the static keyframes taken before it moved saw it where it stood as static surface
+        evidence = candidacy.evidence_landmarks
+        blanked = state.free_space.forget_surface(state.static_map.keyframes,
+                                                  state.static_map.points.positions[evidence])
+        logger.debug("frame %d: object %d's old place (%d static landmarks) blanked in %d free-space samples",
+                     ctx.frame.index, object_map.object_id, len(evidence), blanked)
         ctx.report.objects_created.append(object_map.object_id)
         if object_map.last_tracked_frame == ctx.frame.index:
             ctx.report.objects_tracked.append(object_map.object_id)
