@@ -125,6 +125,7 @@ class KeyframesConfig:
 
     translation: float = 0.1
     rotation_degrees: float = 10.0
+    static_min_inliers: int = 50
 
 
 @dataclass
@@ -308,6 +309,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "ransac.depth_fallback": (lambda v: v == 0 or v >= 1, "0 (off) or at least 1"),
     "keyframes.translation": (lambda v: v >= 0, "at least 0"),
     "keyframes.rotation_degrees": (lambda v: v >= 0, "at least 0"),
+    "keyframes.static_min_inliers": (lambda v: v >= 0, "at least 0"),
     "detection.segment_outlier_ratio": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "detection.partial_outlier_ratio": (lambda v: 0 <= v <= 1, "in [0, 1] (0: off)"),
     "detection.min_segment_features": (lambda v: v >= 1, "at least 1"),

@@ -85,3 +85,15 @@ def test_previous_frame_bridges_what_the_map_cannot_see(static_sequence):
     assert all(r.new_keyframe for r in bridged)  # the map grows into the new view
     assert sum(r.tracked for r in with_bridge) > sum(r.tracked for r in without_bridge)
     assert ate(with_bridge, sequence) < 0.01
+
+
+def test_no_static_keyframe_from_a_poorly_supported_pose(static_sequence):
+    """keyframes.static_min_inliers: a new view becomes a static keyframe only when its
+    registration has that many inliers. Asking more than any frame has leaves the first
+    keyframe alone; the camera still tracks from it."""
+    sequence = open_sequence(static_sequence, max_frames=15)
+    reconstructor, reports = track(sequence)
+    assert any(r.new_keyframe for r in reports[1:]), "the sequence moves enough for new keyframes"
+    gated, gated_reports = track(sequence, ["keyframes.static_min_inliers=100000"])
+    assert len(gated.static_map.keyframes) == 1 < len(reconstructor.static_map.keyframes)
+    assert all(r.tracked and not r.new_keyframe for r in gated_reports[1:])

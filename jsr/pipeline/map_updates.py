@@ -151,12 +151,18 @@ def ensure_vocabulary(state: SceneState, measurements: FrameMeasurements) -> Non
 
 
 def update_static(state: SceneState, ctx: FrameContext) -> None:
-    """Add a keyframe to the static map (its own measurements only) when the pose is new."""
+    """Add a keyframe to the static map (its own measurements only) when the pose is new and
+    the registration that found it has ``keyframes.static_min_inliers`` inliers: landmarks
+    made at a poorly supported pose would be a shifted copy of the scene."""
     frame, measurements, report, static, assignment = ctx.frame, ctx.measurements, ctx.report, ctx.static, ctx.assignment
     pose = report.T_w_c
-    if not (static.bridged or ctx.force_static_keyframe
-            or state.static_map.needs_keyframe(pose, state.config.keyframes)):
-        return
+    if not (static.bridged or ctx.force_static_keyframe):
+        if not state.static_map.needs_keyframe(pose, state.config.keyframes):
+            return
+        if static.result.num_inliers < state.config.keyframes.static_min_inliers:
+            logger.debug("frame %d: no static keyframe: %d registration inliers, fewer than "
+                         "keyframes.static_min_inliers", frame.index, static.result.num_inliers)
+            return
     points, planes = measurements.points, measurements.planes
     static_points = np.flatnonzero(assignment.point_owner == 0)
     static_planes = np.flatnonzero(assignment.plane_owner == 0)
