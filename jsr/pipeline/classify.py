@@ -37,8 +37,8 @@ import numpy as np
 
 from jsr.pipeline.association import inlier_mask
 from jsr.pipeline.measurements import Segments
-from jsr.pipeline.object_extent import (SIZE_FACTOR, extent_hull, largest_spread, pixels_inside_hull,
-                                       segment_widths, segments_inside_extent)
+from jsr.pipeline.object_extent import (extent_hull, largest_spread, pixels_inside_hull, segments_inside_extent,
+                                       wider_than)
 from jsr.pipeline.object_registration import ObjectTrackingResult
 from jsr.pipeline.region_growth import grow
 from jsr.pipeline.state import FrameAssignment, FrameContext, SceneState
@@ -359,11 +359,8 @@ def wider_than_object(label_image: np.ndarray, depth: np.ndarray, intrinsics, se
     look-alikes (redkitchen_s4_two_sim, seed 14, frame 31: a cylinder resting on the floor got
     the whole 40,000-pixel floor segment from a dozen of its landmarks there)."""
     wide = np.zeros(len(segment_owner), dtype=bool)
-    owned = np.flatnonzero(segment_owner > 0)
-    if not len(owned):
-        return wide
-    widths = segment_widths(label_image, depth, intrinsics, owned)
-    for segment, width in zip(owned, widths):
-        hull = hulls.get(int(segment_owner[segment]))
-        wide[segment] = hull is not None and width > SIZE_FACTOR * largest_spread(hull.points)
+    for object_id, hull in hulls.items():
+        owned = np.flatnonzero(segment_owner == object_id)
+        if hull is not None and len(owned):
+            wide[owned] = wider_than(label_image, depth, intrinsics, owned, largest_spread(hull.points))
     return wide

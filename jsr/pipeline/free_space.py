@@ -20,7 +20,7 @@ from jsr.geometry import invert_transform, transform_points
 from jsr.io.camera import CameraIntrinsics
 from jsr.pipeline.correspondences import depth_thresholds
 from jsr.pipeline.maps import Keyframe
-from jsr.pipeline.object_extent import EXTENT_OUTLIER_FACTOR
+from jsr.pipeline.object_extent import without_strays
 
 FREE_SPACE_STRIDE = 4  # free-space tests sample every 4th pixel of every 4th row
 FREE_SPACE_VIEWS = 2  # ... against the latest static keyframes
@@ -64,20 +64,25 @@ class DepthView:
         self.near_depth = self.measured_near_depth = None
         self.__post_init__()
 
-    def sample(self, in_view: np.ndarray, intrinsics, measured_only: bool = False
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(N, 3)`` points in this view's camera frame projected into it: per point whether
-        it falls in the image in front of the camera, the depth the view measured there and
-        its ``near_depth`` (``measured_near_depth`` with ``measured_only``; each ``(N,)``; 0
-        outside)."""
+    def project(self, in_view: np.ndarray, intrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(N, 3)`` points in this view's camera frame: their sample column and row (each
+        ``(N,)`` int) and whether they fall in the image in front of the camera."""
         z = in_view[:, 2]
         ahead = z > 1e-3
         safe = np.where(ahead, z, 1.0)
         u = np.round((intrinsics.fx * in_view[:, 0] / safe + intrinsics.cx) / self.stride).astype(np.int64)
         v = np.round((intrinsics.fy * in_view[:, 1] / safe + intrinsics.cy) / self.stride).astype(np.int64)
         height, width = self.depth.shape
-        inside = ahead & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-        seen, nearest = np.zeros(len(z)), np.zeros(len(z))
+        return u, v, ahead & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+
+    def sample(self, in_view: np.ndarray, intrinsics, measured_only: bool = False
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(N, 3)`` points in this view's camera frame projected into it: per point whether
+        it falls in the image in front of the camera, the depth the view measured there and
+        its ``near_depth`` (``measured_near_depth`` with ``measured_only``; each ``(N,)``; 0
+        outside)."""
+        u, v, inside = self.project(in_view, intrinsics)
+        seen, nearest = np.zeros(len(in_view)), np.zeros(len(in_view))
         seen[inside] = self.depth[v[inside], u[inside]]
         near_depth = self.measured_near_depth if measured_only else self.near_depth
         nearest[inside] = near_depth[v[inside], u[inside]]
@@ -249,10 +254,7 @@ class FreeSpaceViews:
         keyframe, and was not found for 15 frames). Points farther from their median than
         ``EXTENT_OUTLIER_FACTOR`` median distances are left out (a look-alike's match
         elsewhere). Returns the number of samples blanked."""
-        points = np.asarray(world_points, dtype=float).reshape(-1, 3)
-        if len(points):
-            distance = np.linalg.norm(points - np.median(points, axis=0), axis=1)
-            points = points[distance <= EXTENT_OUTLIER_FACTOR * max(float(np.median(distance)), 1e-6)]
+        points = without_strays(world_points)
         blanked = 0
         for keyframe_id, view in self.views:
             in_view = transform_points(invert_transform(keyframes[keyframe_id].T_map_cam), points)
@@ -260,10 +262,8 @@ class FreeSpaceViews:
             there = inside & (seen > 0) & (np.abs(seen - in_view[:, 2]) <= depth_thresholds(seen, self.config.noise))
             if there.sum() < 3:
                 continue
-            z = in_view[there, 2]
-            u = (self.intrinsics.fx * in_view[there, 0] / z + self.intrinsics.cx) / view.stride
-            v = (self.intrinsics.fy * in_view[there, 1] / z + self.intrinsics.cy) / view.stride
-            hull = cv2.convexHull(np.round(np.column_stack([u, v])).astype(np.int32))
+            u, v, _ = view.project(in_view[there], self.intrinsics)
+            hull = cv2.convexHull(np.column_stack([u, v]).astype(np.int32))
             unknown = np.zeros(view.depth.shape, np.uint8)
             cv2.fillConvexPoly(unknown, hull, 1)
             size = 2 * view.near_radius + 1

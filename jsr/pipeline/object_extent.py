@@ -40,6 +40,16 @@ def segments_inside_extent(label_image: np.ndarray, depth: np.ndarray, intrinsic
 EXTENT_OUTLIER_FACTOR = 3.0  # landmarks farther from the median than this many median distances are left out
 
 
+def without_strays(points: np.ndarray) -> np.ndarray:
+    """The ``(N, 3)`` points without those farther from their median than
+    ``EXTENT_OUTLIER_FACTOR`` times the median distance (``(M, 3)``, ``M <= N``)."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    if not len(points):
+        return points
+    distance = np.linalg.norm(points - np.median(points, axis=0), axis=1)
+    return points[distance <= EXTENT_OUTLIER_FACTOR * max(float(np.median(distance)), 1e-6)]
+
+
 def extent_hull(landmarks: np.ndarray):
     """The convex hull (scipy ``ConvexHull``) of ``(L, 3)`` object points (its landmarks, and
     with ``objects.extent_from_surface`` its surface samples), or None when there are fewer
@@ -48,10 +58,7 @@ def extent_hull(landmarks: np.ndarray):
     scene feature the object map took) must not stretch the extent over the scene."""
     from scipy.spatial import ConvexHull, QhullError
 
-    landmarks = np.asarray(landmarks, dtype=float).reshape(-1, 3)
-    if len(landmarks):
-        distance = np.linalg.norm(landmarks - np.median(landmarks, axis=0), axis=1)
-        landmarks = landmarks[distance <= EXTENT_OUTLIER_FACTOR * max(float(np.median(distance)), 1e-6)]
+    landmarks = without_strays(landmarks)
     if len(landmarks) < 8:
         return None
     try:
@@ -98,6 +105,13 @@ def largest_spread(points: np.ndarray) -> float:
     axes = np.linalg.svd(centred[:: max(1, len(centred) // 2000)], full_matrices=False)[2]
     spread = centred @ axes.T
     return float((spread.max(axis=0) - spread.min(axis=0)).max())
+
+
+def wider_than(label_image: np.ndarray, depth: np.ndarray, intrinsics, segments: np.ndarray,
+               object_width: float) -> np.ndarray:
+    """``(len(segments),)`` bool: segments whose surface (:func:`segment_widths`) is more than
+    ``SIZE_FACTOR`` times ``object_width`` (metres): wider than the object can be."""
+    return segment_widths(label_image, depth, intrinsics, segments) > SIZE_FACTOR * object_width
 
 
 def segment_widths(label_image: np.ndarray, depth: np.ndarray, intrinsics, segments: np.ndarray,

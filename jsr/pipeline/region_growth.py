@@ -12,7 +12,7 @@ import numpy as np
 from jsr.pipeline.detection import segment_outlier_stats
 from jsr.pipeline.free_space import FREE_SPACE_STRIDE
 from jsr.pipeline.measurements import FrameMeasurements
-from jsr.pipeline.object_extent import SIZE_FACTOR, segment_widths
+from jsr.pipeline.object_extent import wider_than
 from jsr.pipeline.region_motion import mostly_in_place
 from jsr.pipeline.state import FrameContext, SceneState
 
@@ -69,8 +69,8 @@ def grow(state: SceneState, ctx: FrameContext, seeds: list[int], static_inliers:
     candidates &= ~seen_static | moved
     if object_width is not None and candidates.any():
         wide = np.flatnonzero(candidates)
-        widths = segment_widths(measurements.segments.label_image, ctx.frame.depth, state.intrinsics, wide)
-        candidates[wide[widths > SIZE_FACTOR * object_width]] = False
+        candidates[wide[wider_than(measurements.segments.label_image, ctx.frame.depth, state.intrinsics, wide,
+                                   object_width)]] = False
     why = {"unsupported": candidates.copy()}  # which rule let each segment in (debug log)
     # A face with keypoints none of which is a static inlier (seen at a grazing angle, with
     # few of them with depth, or a side the camera had not seen before the object moved),
