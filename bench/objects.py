@@ -228,7 +228,9 @@ class RunRecord:
     reports: list = field(default_factory=list)
     confusion: np.ndarray = field(default_factory=lambda: np.zeros((LABEL_BINS, LABEL_BINS), np.int64))
     label_counts: dict[int, np.ndarray] = field(default_factory=dict)  # frame index -> pixels per label
-    creation_overlap: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)  # map K -> (frame, label row)
+    # map K -> (frame it was created at, label row of its first mask: the frame that confirms a
+    # candidate writes its pixels as 255, so its id first shows in the next frame's mask)
+    creation_overlap: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)
     labelled_frames: int = 0
     frame_confusion: dict[int, np.ndarray] = field(default_factory=dict)  # frame -> (ID_BINS, ID_BINS) mask x label
     merged_into: dict[int, int] = field(default_factory=dict)  # object id -> the map it was merged into
@@ -243,6 +245,7 @@ def run_pipeline(sequence, config, labels_dir: Path | None) -> RunRecord:
     """Every frame through a Reconstructor; mask/label counts gathered per frame."""
     record = RunRecord()
     reconstructor = Reconstructor(config, sequence.intrinsics)
+    unshown: dict[int, int] = {}  # map K created at frame f, its id not yet in a labelled frame's mask
     try:
         for index in range(len(sequence)):
             started = time.perf_counter()
@@ -259,12 +262,18 @@ def run_pipeline(sequence, config, labels_dir: Path | None) -> RunRecord:
                 record.frame_confusion[report.frame_index] = frame_confusion[:ID_BINS, :ID_BINS].copy()
                 record.labelled_frames += 1
                 for object_id in report.objects_created:
-                    record.creation_overlap[object_id] = (report.frame_index, frame_confusion[object_id].copy())
+                    unshown[object_id] = report.frame_index
+                for object_id, created in list(unshown.items()):
+                    if object_id < LABEL_BINS and frame_confusion[object_id].any():
+                        record.creation_overlap[object_id] = (created, frame_confusion[object_id].copy())
+                        del unshown[object_id]
             else:
                 for object_id in report.objects_created:
-                    record.creation_overlap[object_id] = (report.frame_index, np.zeros(LABEL_BINS, np.int64))
+                    unshown[object_id] = report.frame_index
             report.mask = None  # counted; the reconstructor keeps the keyframes' own copies
             record.reports.append(report)
+        for object_id, created in unshown.items():  # never shown in a labelled mask: overlaps nothing
+            record.creation_overlap[object_id] = (created, np.zeros(LABEL_BINS, np.int64))
         started = time.perf_counter()
         reconstructor.finish()
         record.seconds += time.perf_counter() - started
