@@ -291,6 +291,18 @@ def test_shape_alone_needs_a_pinned_unrivalled_fit_whose_texture_lines_up_where_
     region_only = _depth_view(seen.points.astype(float))
     assert alone([right], model=twice, view=region_only) is right
     assert alone([right, Alignment(copy @ camera, 0.98, 0.07)], model=twice, view=region_only) is None
+    # the other copy's texture lines up too, but clearly worse (more than 0.2 of the own
+    # views' agreement below the choice): not ambiguous; nearly as well (within 0.2): ambiguous
+    blend = np.random.default_rng(1).integers(0, 256, seen.colors.shape)
+    for weight, rival_is_ambiguous in ((0.5, False), (0.95, True)):
+        smudged = SurfaceSample(seen.points, (weight * seen.colors + (1 - weight) * blend).astype(np.uint8))
+        unlike = build_model([(camera, seen), (copy @ camera, smudged)], VOXEL)
+        tree = cKDTree(unlike.points)
+        agreements = [texture_agreement(region, unlike, tree, T, VOXEL) for T in (camera, copy @ camera)]
+        assert agreements[1] >= 0.5  # the rival passes the texture test on its own
+        assert (agreements[1] >= agreements[0] - 0.2) == rival_is_ambiguous
+        expected = None if rival_is_ambiguous else right
+        assert alone([right, Alignment(copy @ camera, 0.98, 0.07)], model=unlike, view=region_only) is expected
     # 15 cm nearer the camera, in space the view saw empty: neither the choice nor a rival
     nearer = camera @ np.linalg.inv(make_transform(np.eye(3), [0.0, 0.0, -0.15]))
     assert alone([Alignment(nearer, 0.97, 0.06), right]) is right

@@ -39,7 +39,8 @@ from jsr.pipeline.surfaces import SurfaceModel, region_model, sample_surface
 logger = logging.getLogger(__name__)
 
 SHAPE_CANDIDATES = 4  # surface alignments (best colour agreement first) tried by feature matching
-SHAPE_RIVAL_FITNESS_GAP = 0.1  # a surface fit this close in fitness to the chosen one, whose texture passes too, makes the surface ambiguous
+# a surface fit this close to the chosen one in fitness and in texture agreement (of the own views') makes the surface ambiguous
+SHAPE_RIVAL_FITNESS_GAP, SHAPE_RIVAL_TEXTURE_GAP = 0.1, 0.2
 SHAPE_MODE_METRES, SHAPE_MODE_DEGREES = 0.1, 15.0  # fits closer than this (at the region) are one fit, not rivals
 SHAPE_CONFIRM_METRES, SHAPE_CONFIRM_DEGREES = 0.2, 30.0  # landmarks confirm a surface fit within this of it
 # landmark matches pin a surface fit when the motions its shape leaves free move them at least half as far as the region
@@ -301,7 +302,10 @@ def shape_alone(state: SceneState, object_map: ObjectMap, region: SurfaceModel, 
       - or else by the texture's peak along the free motions
         (:func:`~jsr.pipeline.surface_evidence.texture_pin`, which moves the fit to the peak);
     - have no rival: no other fit that the view allows, as complete (fitness within 0.1)
-      and elsewhere, whose texture passes the same test.
+      and elsewhere, whose texture passes the same test and lines up nearly as well (within
+      0.2 of the own views' agreement). A fit that lines up clearly worse is told apart by
+      the texture (redkitchen_s3_two_jump, seed 3, frame 56: a box's fits lined up 0.92
+      and, 0.1 more complete and elsewhere, 0.60; refused, the box started a second map).
     The fit chosen is the one whose texture lines up best; one pinned by shape is returned
     refined by geometry alone (:func:`~jsr.pipeline.surface_alignment.refine_fit`), one pinned by
     landmarks refined on both, one pinned by texture at its texture's peak.
@@ -333,7 +337,7 @@ def shape_alone(state: SceneState, object_map: ObjectMap, region: SurfaceModel, 
     centre = region.points.mean(axis=0)
     rivals = [k for k, a in enumerate(alignments) if k != chosen_index and allowed[k]
               and a.fitness >= chosen.fitness - SHAPE_RIVAL_FITNESS_GAP
-              and texture[k] >= config.shape_min_texture_ratio
+              and texture[k] >= max(config.shape_min_texture_ratio, texture[chosen_index] - SHAPE_RIVAL_TEXTURE_GAP)
               and not same_placement(a.T_model_region, chosen.T_model_region, centre, SHAPE_MODE_METRES,
                                      SHAPE_MODE_DEGREES)]
     if rivals:
