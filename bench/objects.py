@@ -253,6 +253,7 @@ def run_pipeline(sequence, config, labels_dir: Path | None) -> RunRecord:
             report = reconstructor.process(frame)
             record.seconds += time.perf_counter() - started
             label = read_label(labels_dir / f"{frame.name}.png") if labels_dir is not None else None
+            unshown.update({object_id: report.frame_index for object_id in report.objects_created})
             if label is not None and report.mask is not None and report.mask.shape == label.shape:
                 clipped = np.minimum(label, LABEL_BINS - 1).astype(np.int64).ravel()
                 frame_confusion = np.bincount(report.mask.astype(np.int64).ravel() * LABEL_BINS + clipped,
@@ -261,15 +262,10 @@ def run_pipeline(sequence, config, labels_dir: Path | None) -> RunRecord:
                 record.label_counts[report.frame_index] = frame_confusion.sum(axis=0)
                 record.frame_confusion[report.frame_index] = frame_confusion[:ID_BINS, :ID_BINS].copy()
                 record.labelled_frames += 1
-                for object_id in report.objects_created:
-                    unshown[object_id] = report.frame_index
                 for object_id, created in list(unshown.items()):
                     if object_id < LABEL_BINS and frame_confusion[object_id].any():
                         record.creation_overlap[object_id] = (created, frame_confusion[object_id].copy())
                         del unshown[object_id]
-            else:
-                for object_id in report.objects_created:
-                    unshown[object_id] = report.frame_index
             report.mask = None  # counted; the reconstructor keeps the keyframes' own copies
             record.reports.append(report)
         for object_id, created in unshown.items():  # never shown in a labelled mask: overlaps nothing

@@ -251,9 +251,9 @@ class FreeSpaceViews:
         static surface, and that surface is gone. Without this, the object coming back near
         that place is "consistent" with the views and free space cannot find it
         (redkitchen_s4_two_sim, seed 14: a box jumped near where it stood in the first
-        keyframe, and was not found for 15 frames). Points farther from their median than
-        ``EXTENT_OUTLIER_FACTOR`` median distances are left out (a look-alike's match
-        elsewhere). Returns the number of samples blanked."""
+        keyframe, and was not found for 15 frames). Stray points are left out
+        (:func:`~jsr.pipeline.object_extent.without_strays`: a look-alike's match elsewhere).
+        Returns the number of samples blanked."""
         points = without_strays(world_points)
         blanked = 0
         for keyframe_id, view in self.views:

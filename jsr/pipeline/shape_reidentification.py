@@ -39,7 +39,8 @@ from jsr.pipeline.surfaces import SurfaceModel, region_model, sample_surface
 logger = logging.getLogger(__name__)
 
 SHAPE_CANDIDATES = 4  # surface alignments (best colour agreement first) tried by feature matching
-# a surface fit this close to the chosen one in fitness and in texture agreement (of the own views') makes the surface ambiguous
+# a surface fit this close to the chosen one in fitness and in texture agreement (of the own
+# views') makes the surface ambiguous
 SHAPE_RIVAL_FITNESS_GAP, SHAPE_RIVAL_TEXTURE_GAP = 0.1, 0.2
 SHAPE_MODE_METRES, SHAPE_MODE_DEGREES = 0.1, 15.0  # fits closer than this (at the region) are one fit, not rivals
 SHAPE_CONFIRM_METRES, SHAPE_CONFIRM_DEGREES = 0.2, 30.0  # landmarks confirm a surface fit within this of it
