@@ -39,8 +39,9 @@ def detect_moving_regions(state: SceneState, ctx: FrameContext) -> None:
     paper, also segments in space the static keyframes saw empty, segments whose static
     landmarks all went missing, and where an object this frame lost stood a frame ago. Each
     group of touching moving segments is first registered against the existing object maps
-    (an object seen again, elsewhere, :func:`~jsr.pipeline.reidentification.reidentify`); if
-    none fits, it starts a new object map. Adds to ``ctx.assignment``, ``ctx.suspects`` and
+    (an object seen again, elsewhere, :func:`~jsr.pipeline.reidentification.reidentify`):
+    by features in every group, then by surface in the groups left, against the objects still
+    lost; a group none fits starts a new object map. Adds to ``ctx.assignment``, ``ctx.suspects`` and
     the report's objects."""
     if not ctx.registered:
         return  # matched against the previous frame only: outliers say nothing about motion
@@ -100,9 +101,12 @@ def detect_moving_regions(state: SceneState, ctx: FrameContext) -> None:
     groups = merge_adjacent_moving_segments(segments, moving, config.detection.merge_gap_pixels)
     groups = [part for group in groups for part in split_by_motion(config, measurements, ctx.motions, group, ctx.T_w_c)]
     by_id = {outcome.object_map.object_id: outcome for outcome in ctx.outcomes}
+    unexplained = []  # (region, its displaced landmarks) that no lost object's features explain
     for index, group in enumerate(groups):
-        # a group does not grow into another group of this frame (an object beside it that moved too)
+        # a group does not grow into another group of this frame (an object beside it that
+        # moved too), nor into what an earlier group grew to
         others = [s for k, other in enumerate(groups) if k != index for s in other]
+        others += [s for earlier, _ in unexplained for s in earlier]
         owner = assignment.segment_owner.copy()
         owner[others] = np.where(owner[others] == 0, -1, owner[others])
         group = grow(state, ctx, group, inliers, owner)
@@ -120,7 +124,16 @@ def detect_moving_regions(state: SceneState, ctx: FrameContext) -> None:
                 state.memory.pending_displaced.append((np.unique(np.concatenate(displaced)), until))
             ctx.suspects.extend(group)  # nor does its new place enter the static map
             continue
-        if config.objects.reidentify and reidentify(state, ctx, group, group_points, by_id):
+        if config.objects.reidentify and reidentify(state, ctx, group, group_points, by_id, by_shape=False):
+            continue
+        unexplained.append((group, group_points))
+    # Surface alignment costs 0.5-2 s a try, features milliseconds: a lost object that the
+    # features find in one region of the frame is not aligned to the others first
+    # (bonn_crowd_people, RANSAC seed 4, frame 20: a lost person map was aligned twice to one
+    # region, 2.3 s each, before its landmarks found it in the next region).
+    for group, group_points in unexplained:
+        group_points = group_points[assignment.point_owner[group_points] == 0]
+        if config.objects.reidentify and reidentify(state, ctx, group, group_points, by_id, by_shape=True):
             continue
         evidence = np.union1d(outlier_landmarks(ctx, group, inliers),
                               np.concatenate([displaced_in.get(s, np.zeros(0, np.int64)) for s in group]))
