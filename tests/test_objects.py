@@ -1584,7 +1584,7 @@ def test_surface_alignment_is_drawn_again_while_nothing_is_kept(monkeypatch):
         monkeypatch.setattr(reconstructor.state.surfaces, "model", lambda object_map: "its surface model")
         monkeypatch.setattr(shape_reidentification, "could_hold", lambda model, region: True)
         lost = [SimpleNamespace(object_id=1)]
-        ctx = SimpleNamespace(frame=frame, measurements=measurements)
+        ctx = SimpleNamespace(frame=frame, measurements=measurements, self_textures={})
         assert shape_reidentification.reidentify_by_shape(reconstructor.state, ctx, [3], None, lost, {}) is found
         assert len(seen) == calls
         assert all(args[4] is seen[0][4] for args in seen)  # one region model, reused
@@ -1660,3 +1660,61 @@ def test_forgetting_a_moved_objects_surface_blanks_it_in_the_views():
     assert blanked == expected.sum()
     assert (view.depth[expected] == 0).all() and (view.depth[~expected] == depth[~expected]).all()
     assert (view.near_depth[~expected] > 0).all()  # the lenient minimum ignores the blanked samples
+
+
+def test_every_region_is_tried_by_features_before_any_by_surface(monkeypatch):
+    """moving_regions.detect_moving_regions: a lost object that the features find in one moving
+    region of the frame is not first aligned by surface to another region (0.5-2.3 s a draw;
+    bonn_crowd_people seed 4, frame 20: a person map aligned twice to one region, then found by
+    its landmarks in the next), and every region left has its first surface draw before any
+    has its second. A region nothing explains starts a map; a later region does not grow into
+    the segments an earlier one grew to."""
+    import jsr.pipeline.moving_regions as moving_regions
+    from jsr.synth.scene import synth_intrinsics
+
+    reconstructor = Reconstructor(load_config(None, ["detection.in_place_turn_degrees=0", "objects.shape_attempts=2"]),
+                                  synth_intrinsics(160, 120))
+    state = reconstructor.state
+    segments = _FrameSegments([np.arange(0, 30), np.arange(30, 60), np.arange(60, 90), np.arange(90, 120)])
+    segments.label_image = np.repeat(np.repeat(np.arange(4), 10)[None], 10, axis=0)
+    points = _FramePoints(has_depth=np.ones(120, dtype=bool))
+    measurements = SimpleNamespace(segments=segments, points=points, frame_index=12)
+    assignment = SimpleNamespace(segment_owner=np.zeros(4, dtype=np.int64), point_owner=np.zeros(120, dtype=np.int64))
+    ctx = SimpleNamespace(registered=True, frame=SimpleNamespace(index=12), measurements=measurements,
+                          report=SimpleNamespace(T_w_c=np.eye(4), objects_created=[], objects_tracked=[]),
+                          assignment=assignment, static_matched=lambda: None, static_inliers=lambda: (None, None),
+                          free_space_counts=lambda state: (np.zeros(4), np.zeros(4)), motions=[], T_w_c=np.eye(4),
+                          outcomes=[], suspects=[])
+    for name in ("detect_moving_segments", "not_in_place", "rigidly_moved"):
+        monkeypatch.setattr(moving_regions, name, lambda state_or_segments, *args, **kwargs: [0, 1, 2])
+    monkeypatch.setattr(moving_regions, "where_just_lost", lambda *args: [])
+    monkeypatch.setattr(moving_regions, "free_space_segments", lambda *args: [])
+    monkeypatch.setattr(moving_regions, "displaced_landmarks", lambda *args: [])
+    monkeypatch.setattr(moving_regions, "merge_adjacent_moving_segments", lambda *args: [[0], [1], [2]])
+    monkeypatch.setattr(moving_regions, "split_by_motion", lambda config, measurements, motions, group, T: [group])
+    monkeypatch.setattr(moving_regions, "moved_as_before", lambda *args: False)
+    monkeypatch.setattr(moving_regions, "outlier_landmarks", lambda *args: np.zeros(0, dtype=np.int64))
+    grown_into = {}  # region -> the segments free for it to grow into
+
+    def grow(state, ctx, group, inliers, owner):  # region 0 grows into segment 3 (not moving), if free
+        grown_into[group[0]] = [s for s in range(4) if owner[s] == 0]
+        return group + [3] if group == [0] and owner[3] == 0 else group
+
+    monkeypatch.setattr(moving_regions, "grow", grow)
+    calls = []
+
+    def reidentify(state, ctx, group, group_points, outcomes, shape_draws=0):
+        calls.append((group[0], shape_draws))
+        # region 2 is a lost object found by its features, region 1 one found by its surface
+        return (group == [2] and not shape_draws) or (group == [1] and shape_draws > 0)
+
+    monkeypatch.setattr(moving_regions, "reidentify", reidentify)
+    started = []
+    monkeypatch.setattr(moving_regions, "start_object",
+                        lambda state, ctx, group, T_w_c, evidence_landmarks: started.append(group))
+    moving_regions.detect_moving_regions(state, ctx)
+    # features on all three first; then one surface draw each on 0 and 1; a second on 0 only
+    assert calls == [(0, 0), (1, 0), (2, 0), (0, 1), (1, 1), (0, 1)]
+    assert started == [[0, 3]]
+    assert grown_into == {0: [0, 3], 1: [1], 2: [2]}  # 3 is region 0's before it is started
+    reconstructor.close()

@@ -124,17 +124,23 @@ def detect_moving_regions(state: SceneState, ctx: FrameContext) -> None:
                 state.memory.pending_displaced.append((np.unique(np.concatenate(displaced)), until))
             ctx.suspects.extend(group)  # nor does its new place enter the static map
             continue
-        if config.objects.reidentify and reidentify(state, ctx, group, group_points, by_id, by_shape=False):
+        if config.objects.reidentify and reidentify(state, ctx, group, group_points, by_id):
             continue
         unexplained.append((group, group_points))
-    # Surface alignment costs 0.5-2 s a try, features milliseconds: a lost object that the
+    # Surface alignment costs 0.5-2 s a draw, features milliseconds: a lost object that the
     # features find in one region of the frame is not aligned to the others first
     # (bonn_crowd_people, RANSAC seed 4, frame 20: a lost person map was aligned twice to one
-    # region, 2.3 s each, before its landmarks found it in the next region).
+    # region, 2.3 s each, before its landmarks found it in the next region), and every region
+    # has its first draw before any has its second (a draw may find the object in the next).
+    for _ in range(config.objects.shape_attempts if config.objects.reidentify else 0):
+        still_unexplained = []
+        for group, group_points in unexplained:
+            group_points = group_points[assignment.point_owner[group_points] == 0]
+            if not reidentify(state, ctx, group, group_points, by_id, shape_draws=1):
+                still_unexplained.append((group, group_points))
+        unexplained = still_unexplained
     for group, group_points in unexplained:
         group_points = group_points[assignment.point_owner[group_points] == 0]
-        if config.objects.reidentify and reidentify(state, ctx, group, group_points, by_id, by_shape=True):
-            continue
         evidence = np.union1d(outlier_landmarks(ctx, group, inliers),
                               np.concatenate([displaced_in.get(s, np.zeros(0, np.int64)) for s in group]))
         object_map = start_object(state, ctx, group, report.T_w_c, evidence_landmarks=evidence)

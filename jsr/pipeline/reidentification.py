@@ -29,11 +29,12 @@ logger = logging.getLogger(__name__)
 
 
 def reidentify(state: SceneState, ctx: FrameContext, group: list[int], group_points: np.ndarray,
-               outcomes: dict[int, ObjectTrackingResult], by_shape: bool) -> bool:
+               outcomes: dict[int, ObjectTrackingResult], shape_draws: int = 0) -> bool:
     """Register a moving region against the objects not tracked in this frame
     (:func:`lost_objects`), whole map and no prediction; on success the region is that object
-    (it is tracked again). With ``by_shape``, the region's surface is aligned to theirs
-    instead (:func:`~jsr.pipeline.shape_reidentification.reidentify_by_shape`, when
+    (it is tracked again). With ``shape_draws`` > 0, the region's surface is aligned to theirs
+    instead, drawn that many times at most
+    (:func:`~jsr.pipeline.shape_reidentification.reidentify_by_shape`, when
     ``objects.shape_reidentify``): the detection tries features on every region of a frame
     first, and surfaces only on the regions left, against the objects still lost. ``group``:
     the region's segments; ``group_points``: its point measurements no object has;
@@ -46,7 +47,7 @@ def reidentify(state: SceneState, ctx: FrameContext, group: list[int], group_poi
     found there (a face of it that no view has seen yet). redkitchen_s4_two_sim, frame 40: a
     box and a cylinder moved together; the box's surface took the region with the cylinder in
     it, and the two maps were later merged into one."""
-    if not _reidentify_region(state, ctx, group, group_points, outcomes, by_shape):
+    if not _reidentify_region(state, ctx, group, group_points, outcomes, shape_draws):
         return False
     object_id = int(ctx.assignment.segment_owner[group[0]])
     assignment, segments = ctx.assignment, ctx.measurements.segments
@@ -55,7 +56,8 @@ def reidentify(state: SceneState, ctx: FrameContext, group: list[int], group_poi
         points = points[assignment.point_owner[points] == object_id].astype(np.int64)
         assignment.segment_owner[segment] = 0
         assignment.point_owner[points] = 0
-        if any(_reidentify_region(state, ctx, [segment], points, outcomes, shape) for shape in (False, True)):
+        if any(_reidentify_region(state, ctx, [segment], points, outcomes, draws)
+               for draws in (0, state.config.objects.shape_attempts)):
             logger.info("frame %d: segment %d of region %s lies off object %d's surface: it is object %d",
                         ctx.frame.index, segment, group, object_id, int(assignment.segment_owner[segment]))
         else:  # no other object there: back to the first
@@ -100,12 +102,12 @@ def is_lost(object_map: ObjectMap, outcomes: dict[int, ObjectTrackingResult]) ->
 
 
 def _reidentify_region(state: SceneState, ctx: FrameContext, group: list[int], group_points: np.ndarray,
-                       outcomes: dict[int, ObjectTrackingResult], by_shape: bool) -> bool:
+                       outcomes: dict[int, ObjectTrackingResult], shape_draws: int) -> bool:
     measurements = ctx.measurements
     lost = lost_objects(state, ctx, group_points, outcomes)
-    if by_shape:
+    if shape_draws:
         return state.config.objects.shape_reidentify and bool(lost) and reidentify_by_shape(
-            state, ctx, group, group_points, lost, outcomes)
+            state, ctx, group, group_points, lost, outcomes, shape_draws)
     for object_map in lost:
         matched = match_frame_to_map(measurements, object_map, np.flatnonzero(object_map.points.active), None,
                                      state.config, state.focal_length, point_measurements=group_points)
