@@ -101,7 +101,7 @@ def detect_moving_regions(state: SceneState, ctx: FrameContext) -> None:
     groups = merge_adjacent_moving_segments(segments, moving, config.detection.merge_gap_pixels)
     groups = [part for group in groups for part in split_by_motion(config, measurements, ctx.motions, group, ctx.T_w_c)]
     by_id = {outcome.object_map.object_id: outcome for outcome in ctx.outcomes}
-    unexplained = []  # (region, its displaced landmarks) that no lost object's features explain
+    unexplained = []  # (region, its point measurements) that no lost object's features explain
     for index, group in enumerate(groups):
         # a group does not grow into another group of this frame (an object beside it that
         # moved too), nor into what an earlier group grew to
