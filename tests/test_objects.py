@@ -1585,7 +1585,8 @@ def test_surface_alignment_is_drawn_again_while_nothing_is_kept(monkeypatch):
         monkeypatch.setattr(shape_reidentification, "could_hold", lambda model, region: True)
         lost = [SimpleNamespace(object_id=1)]
         ctx = SimpleNamespace(frame=frame, measurements=measurements, self_textures={})
-        assert shape_reidentification.reidentify_by_shape(reconstructor.state, ctx, [3], None, lost, {}) is found
+        assert shape_reidentification.reidentify_by_shape(reconstructor.state, ctx, [3], None, lost, {},
+                                                          attempts) is found
         assert len(seen) == calls
         assert all(args[4] is seen[0][4] for args in seen)  # one region model, reused
         reconstructor.close()

@@ -132,7 +132,8 @@ def detect_moving_regions(state: SceneState, ctx: FrameContext) -> None:
     # (bonn_crowd_people, RANSAC seed 4, frame 20: a lost person map was aligned twice to one
     # region, 2.3 s each, before its landmarks found it in the next region), and every region
     # has its first draw before any has its second (a draw may find the object in the next).
-    for _ in range(config.objects.shape_attempts if config.objects.reidentify else 0):
+    surfaces_tried = config.objects.reidentify and config.objects.shape_reidentify
+    for _ in range(config.objects.shape_attempts if surfaces_tried else 0):
         still_unexplained = []
         for group, group_points in unexplained:
             group_points = group_points[assignment.point_owner[group_points] == 0]

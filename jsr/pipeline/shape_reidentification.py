@@ -51,12 +51,11 @@ SHAPE_SEEN_THROUGH_VOXELS, SHAPE_SEEN_THROUGH_SIGMAS = 3.0, 3.0  # a model point
 
 
 def reidentify_by_shape(state: SceneState, ctx: FrameContext, group: list[int], group_points: np.ndarray,
-                        lost: list[ObjectMap], outcomes: dict[int, ObjectTrackingResult],
-                        draws: int | None = None) -> bool:
-    """:func:`align_to_lost_objects` up to ``draws`` times (``objects.shape_attempts`` when
-    None), while it keeps no alignment: its RANSAC draws from FPFH pairs, and once in a while
-    no draw finds the right alignment (synth_two_sim s5, frame 18: 1 draw in 40 missed a
-    cylinder that the others found, and the cylinder started a second map). Only the
+                        lost: list[ObjectMap], outcomes: dict[int, ObjectTrackingResult], draws: int) -> bool:
+    """:func:`align_to_lost_objects` up to ``draws`` times, while it keeps no alignment: its
+    RANSAC draws from FPFH pairs, and once in a while no draw finds the right alignment
+    (synth_two_sim s5, frame 18: 1 draw in 40 missed a cylinder that the others found, and
+    the cylinder started a second map). Only the
     alignments are drawn again: the region's surface and the lost objects' models are computed
     once, their own views' texture agreement once a frame (``ctx.self_textures``). An object
     is not tried for a region larger than it can be (:func:`could_hold`): a person walking by
@@ -72,7 +71,7 @@ def reidentify_by_shape(state: SceneState, ctx: FrameContext, group: list[int], 
               if (model := state.surfaces.model(object_map)) is not None and could_hold(model, region)]
     if not models:
         return False
-    for attempt in range(config.shape_attempts if draws is None else draws):
+    for attempt in range(draws):
         if align_to_lost_objects(state, ctx, group, group_points, region, models, ctx.self_textures, outcomes):
             if attempt:
                 logger.debug("frame %d: region %s found by surface alignment at attempt %d", frame.index, group,
