@@ -363,6 +363,50 @@ def test_jacobian_sparsity_matches_dense_numeric_jacobian():
 
     sparse = approx_derivative(problem.residuals, x, method="2-point", sparsity=problem.jac_sparsity())
     assert np.allclose(sparse.toarray(), dense, atol=1e-4 * np.abs(dense).max())
+    # the analytic Jacobian the solver uses is the derivative, entry by entry
+    analytic = problem.jacobian(x)
+    assert analytic.shape == dense.shape
+    assert np.allclose(analytic.toarray(), dense, rtol=1e-5, atol=1e-6 * np.abs(dense).max())
+
+
+def test_points_seen_by_one_keyframe_move_with_it_as_a_full_solve_would(monkeypatch):
+    """Points observed once are left out of the solve and carried by their keyframe's
+    correction: keyframe poses and every landmark end where solving for all points puts them."""
+    rng = np.random.default_rng(21)
+    scene = make_scene(rng, keyframes=6, landmarks=900, max_per_keyframe=120, planes=2)
+    the_map = build_map(scene, rng)
+    config = BundleAdjustmentConfig(enabled=True, max_iterations=200)
+    problem = BundleProblem.from_map(the_map, config, NOISE, K)
+    carried = problem.carried_point_ids
+    assert len(carried) > 100 and not np.isin(carried, problem.point_ids).any()
+    observed = np.concatenate([kf.point_landmarks for kf in the_map.keyframes])
+    ids, counts = np.unique(observed, return_counts=True)
+    assert np.array_equal(np.sort(carried), ids[(counts == 1) & np.isin(ids, carried)])
+    assert set(ids[counts >= 2]) <= set(problem.point_ids)
+
+    full_map = copy.deepcopy(the_map)
+    poses_before, positions_before = the_map.keyframe_poses.copy(), the_map.points.positions.copy()
+    reduced = bundle_adjust(the_map, config, NOISE, K)
+    monkeypatch.setattr(BundleProblem, "_carry_single_view_points", lambda self: None)
+    full = bundle_adjust(full_map, config, NOISE, K)
+    assert reduced.success and full.success
+    assert reduced.landmarks_optimised + len(carried) == full.landmarks_optimised
+    difference = invert_transform(full_map.keyframe_poses) @ the_map.keyframe_poses
+    assert np.abs(difference[:, :3, 3]).max() < 1e-4  # 0.1 mm
+    assert np.degrees(rotation_angle(difference[:, :3, :3])).max() < 0.01
+    solved = np.setdiff1d(np.arange(len(positions_before)), carried)
+    assert np.linalg.norm(the_map.points.positions[solved] - full_map.points.positions[solved], axis=1).max() < 1e-3
+    # a carried point keeps its place in its keyframe's camera (the full solve also fits its
+    # observation there, but gives up what the map knew of it beyond that one view)
+    owner = {int(i): k for k, kf in enumerate(the_map.keyframes) for i in kf.point_landmarks}
+    moved = 0.0
+    for point in carried:
+        k = owner[int(point)]
+        before = transform_points(invert_transform(poses_before[k]), positions_before[point][None])
+        after = transform_points(invert_transform(the_map.keyframe_poses[k]), the_map.points.positions[point][None])
+        assert np.allclose(before, after, atol=1e-9)
+        moved = max(moved, float(np.linalg.norm(the_map.points.positions[point] - positions_before[point])))
+    assert moved > 1e-3  # their keyframes moved, and they with them
 
 
 def test_first_keyframe_is_fixed_even_inside_the_window():
