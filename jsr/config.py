@@ -184,6 +184,7 @@ class ObjectsConfig:
     reidentify: bool = True
     shape_reidentify: bool = True
     shape_attempts: int = 2
+    shape_alignments_per_frame: int = 2
     shape_voxel: float = 0.01
     shape_radius_px: float = 40.0
     shape_min_fitness: float = 0.5
@@ -362,6 +363,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "vlad.kmeans_iterations": (lambda v: v >= 1, "at least 1"),
     "vlad.candidate_segments": (lambda v: v >= 1, "at least 1"),
     "objects.shape_attempts": (lambda v: v >= 1, "at least 1"),
+    "objects.shape_alignments_per_frame": (lambda v: v >= 1, "at least 1"),
     "bundle_adjustment.every_keyframes": (lambda v: v >= 1, "at least 1"),
     "bundle_adjustment.window_keyframes": (lambda v: v >= 2, "at least 2"),
     "bundle_adjustment.max_iterations": (lambda v: v >= 1, "at least 1"),

@@ -1584,7 +1584,7 @@ def test_surface_alignment_is_drawn_again_while_nothing_is_kept(monkeypatch):
         monkeypatch.setattr(reconstructor.state.surfaces, "model", lambda object_map: "its surface model")
         monkeypatch.setattr(shape_reidentification, "could_hold", lambda model, region: True)
         lost = [SimpleNamespace(object_id=1)]
-        ctx = SimpleNamespace(frame=frame, measurements=measurements, self_textures={})
+        ctx = SimpleNamespace(frame=frame, measurements=measurements, self_textures={}, surface_alignments=0)
         assert shape_reidentification.reidentify_by_shape(reconstructor.state, ctx, [3], None, lost, {},
                                                           attempts) is found
         assert len(seen) == calls
@@ -1719,3 +1719,32 @@ def test_every_region_is_tried_by_features_before_any_by_surface(monkeypatch):
     assert started == [[0, 3]]
     assert grown_into == {0: [0, 3], 1: [1], 2: [2]}  # 3 is region 0's before it is started
     reconstructor.close()
+
+
+def test_surface_alignments_per_frame_are_bounded(monkeypatch):
+    """shape_reidentification.reidentify_by_shape: a frame runs at most
+    objects.shape_alignments_per_frame (region, lost object) alignments, however many regions,
+    lost objects and draws ask for them (bonn_crowd_people seed 9, frame 85: 8 alignments of
+    person surfaces, 13.4 s); the lost objects are aligned in the order given, and a region
+    that finds the budget spent is not even sampled."""
+    import jsr.pipeline.shape_reidentification as shape
+
+    config = load_config(None, ["objects.shape_alignments_per_frame=5"])
+    lost = [SimpleNamespace(object_id=k) for k in (4, 7, 9)]
+    state = SimpleNamespace(config=config, intrinsics=None,
+                            surfaces=SimpleNamespace(model=lambda object_map: f"model {object_map.object_id}"))
+    ctx = SimpleNamespace(frame=SimpleNamespace(index=85, depth=None, color=None), self_textures={},
+                          measurements=SimpleNamespace(segments=SimpleNamespace(label_image=np.zeros((4, 4), int))),
+                          surface_alignments=0)
+    sampled, aligned = [], []
+    monkeypatch.setattr(shape, "sample_surface", lambda *args: sampled.append(1))
+    monkeypatch.setattr(shape, "region_model", lambda sample, voxel: "region")
+    monkeypatch.setattr(shape, "could_hold", lambda model, region: True)
+    monkeypatch.setattr(shape, "align_to_lost_objects", lambda state, ctx, group, points, region, models, textures,
+                        outcomes: aligned.append([m.object_id for m, _ in models]) and False)
+    for _ in range(2):  # as the detection draws: once for every region, then again: 18 alignments asked for
+        for region in range(3):
+            assert not shape.reidentify_by_shape(state, ctx, [region], np.zeros(0, int), lost, {}, draws=1)
+    assert aligned == [[4, 7, 9], [4, 7]]  # region 0 against all three, region 1 against the first two
+    assert ctx.surface_alignments == 5
+    assert len(sampled) == 2  # later regions found the budget spent

@@ -258,6 +258,7 @@ class FrameContext:
     free_space: tuple[np.ndarray, np.ndarray] | None = None  # (S,) violations, (S,) consistent
     measured_free_space: tuple[np.ndarray, np.ndarray] | None = None  # the same, measured_only
     self_textures: dict[int, float | None] = field(default_factory=dict)  # ObjectSurfaces.self_texture by map id
+    surface_alignments: int = 0  # (region, lost object) surface alignments run (objects.shape_alignments_per_frame)
 
     @property
     def T_w_c(self) -> np.ndarray | None:
