@@ -71,7 +71,7 @@ def main() -> None:
         seconds = np.array([r.seconds for r in done])
         print(f"{name:<18}{frames:>7}{len(done):>6}{mean([r.keyframes_optimised for r in done]):>8.1f}"
               f"{mean([r.landmarks_optimised for r in done]):>8.0f}"
-              f"{mean([getattr(r, 'points_carried', 0) for r in done]):>8.0f}"
+              f"{mean([r.points_carried for r in done]):>8.0f}"
               f"{mean([r.observations for r in done]):>7.0f}{mean([r.iterations for r in done]):>6.1f}"
               f"{np.median(seconds):>9.3f} /{seconds.max():>6.3f}{sum(r.cpu_seconds for r in done):>12.2f}"
               f"{waits.max() / 1000:>11.2f}{int(np.sum(waits > 500)):>11}")

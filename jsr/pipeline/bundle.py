@@ -55,8 +55,8 @@ from scipy.sparse import coo_matrix, csr_matrix
 from scipy.spatial.transform import Rotation
 
 from jsr.config import BundleAdjustmentConfig, NoiseConfig
-from jsr.geometry import invert_transform
-from jsr.pipeline.bundle_jacobian import analytic_jacobian, jacobian_sparsity
+from jsr.geometry import invert_transform, transform_points
+from jsr.pipeline.bundle_jacobian import analytic_jacobian
 from jsr.pipeline.maps import Map
 from jsr.pipeline.robust_loss import huber_cost, huber_loss
 
@@ -409,11 +409,6 @@ class BundleProblem:
             ]).ravel())
         return np.concatenate(parts) if parts else np.zeros(0)
 
-    def jac_sparsity(self) -> csr_matrix:
-        """``(num_residuals, num_parameters)`` 0/1 pattern: a residual block depends on its
-        keyframe's 6 parameters (if free) and its landmark's 3."""
-        return jacobian_sparsity(self)
-
     def jacobian(self, x: np.ndarray) -> csr_matrix:
         """Analytic ``(num_residuals, num_parameters)`` Jacobian of :meth:`residuals` at ``x``."""
         return analytic_jacobian(self, x)
@@ -550,14 +545,17 @@ def apply_solution(map: Map, solution: BundleSolution) -> None:
     information, shifted by the BA correction); a snapshot plane is rotated by the smallest
     rotation from its old to its new normal and shifted by the offset change. Keyframes,
     landmarks and planes created after the snapshot were placed with poses relative to the old
-    map, so they get the rigid correction of the newest optimised keyframe. When nothing changed
+    map, so they get the rigid correction of the newest optimised keyframe. A point seen by one
+    keyframe only (not solved for) moves with that keyframe's correction. When nothing changed
     meanwhile this is exactly (up to rounding) the optimised state.
     """
     if not solution.result.success:
         return
     keyframes = map.keyframes
-    for index, before, after in zip(solution.keyframe_indices, solution.poses_before, solution.poses_after):
-        keyframes[index].T_map_cam = after @ invert_transform(before) @ keyframes[index].T_map_cam
+    moved_by = {int(index): after @ invert_transform(before)  # T_after inv(T_before) per optimised keyframe
+                for index, before, after in zip(solution.keyframe_indices, solution.poses_before, solution.poses_after)}
+    for index, keyframe_correction in moved_by.items():
+        keyframes[index].T_map_cam = keyframe_correction @ keyframes[index].T_map_cam
     correction = solution.result.correction
     moved = not np.array_equal(correction, np.eye(4))
     if moved:
@@ -566,11 +564,10 @@ def apply_solution(map: Map, solution: BundleSolution) -> None:
 
     positions = map.points.positions
     positions[solution.point_ids] += solution.positions_after - solution.positions_before
-    for index, before, after in zip(solution.keyframe_indices, solution.poses_before, solution.poses_after):
+    for index, keyframe_correction in moved_by.items():
         carried = solution.carried_point_ids[solution.carried_keyframes == index]
         if len(carried):
-            moved_by = after @ invert_transform(before)
-            positions[carried] = positions[carried] @ moved_by[:3, :3].T + moved_by[:3, 3]
+            positions[carried] = transform_points(keyframe_correction, positions[carried])
     if moved and len(map.points) > solution.num_points:
         new = slice(solution.num_points, len(map.points))
         positions[new] = positions[new] @ correction[:3, :3].T + correction[:3, 3]

@@ -90,7 +90,7 @@ def analytic_jacobian(problem, x: np.ndarray) -> csr_matrix:
     rotations, translations, positions, planes = problem.unpack(x)
     left = np.tile(np.eye(3), (len(problem.poses), 1, 1))
     left[free] = left_jacobians(pose_x[:, :3])
-    blocks = []  # (landmark blocks (n, width, 3), pose blocks (n, width, 6)) per kind
+    blocks = []  # (landmark blocks (n, width, 3), pose blocks (n, width, 6), keyframe slots (n,)) per kind
 
     def point_blocks(keyframe, point, d_local_fn):
         # camera point of landmark X: local = R^T (X - t); d local / dX = R^T,
@@ -100,7 +100,7 @@ def analytic_jacobian(problem, x: np.ndarray) -> csr_matrix:
         local = np.einsum("nij,nj->ni", transposed, offset)
         d_point = d_local_fn(local) @ transposed
         d_rotation = d_point @ cross_matrices(offset) @ left[keyframe]
-        return d_point, np.concatenate([d_rotation, -d_point], axis=2)
+        return d_point, np.concatenate([d_rotation, -d_point], axis=2), keyframe
 
     if len(problem.obs3_keyframe):
         scale = 0.5 * (problem.intrinsics[0, 0] + problem.intrinsics[1, 1]) * problem.pixel_weight
@@ -145,12 +145,11 @@ def analytic_jacobian(problem, x: np.ndarray) -> csr_matrix:
         landmark = np.zeros((count, 4, 3))
         landmark[:, :3, :2] = d_landmark_normal[problem.obsp_plane] * problem.normal_weight
         landmark[:, 3, 2] = -problem.offset_weight
-        blocks.append((landmark, pose))
+        blocks.append((landmark, pose, k))
 
     rows, cols = jacobian_entries(problem)
     data = []
-    for (landmark, pose), keyframe in zip(blocks, [kind for kind in (
-            problem.obs3_keyframe, problem.obs2_keyframe, problem.obsp_keyframe) if len(kind)]):
+    for landmark, pose, keyframe in blocks:
         data.append(landmark.ravel())
         data.append(pose[free[keyframe]].ravel())
     return _sparse(problem, rows, cols, data)
