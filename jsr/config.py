@@ -231,6 +231,7 @@ class BundleAdjustmentConfig:
     plane_normal_sigma: float = 0.01
     plane_offset_sigma: float = 0.01
     min_shared_landmarks: int = 3
+    estimate_noise: bool = True
 
 
 @dataclass

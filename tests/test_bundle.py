@@ -23,9 +23,10 @@ from jsr.geometry import (
 )
 from jsr.pipeline.bundle import BundleProblem, apply_solution, bundle_adjust
 from jsr.pipeline.bundle_jacobian import jacobian_sparsity
+from jsr.pipeline.bundle_noise import BOUNDS, GROUPS, update
 from jsr.pipeline.bundle_scheduler import BundleScheduler
 from jsr.geometry import transform_planes
-from jsr.pipeline.maps import Keyframe, Map
+from jsr.pipeline.maps import Keyframe, Map, ObjectMap
 from jsr.pipeline.robust_loss import huber_loss
 
 FX = FY = 525.0
@@ -56,8 +57,10 @@ class Scene:
 
 
 def make_scene(rng, keyframes=8, landmarks=300, fraction_2d=0.15, arc_degrees=40.0, max_per_keyframe=None,
-               planes=3):
-    """Cameras on an arc 2.5 m from the scene, landmarks on the floor, the back wall and in between."""
+               planes=3, depth_noise=1.0):
+    """Cameras on an arc 2.5 m from the scene, landmarks on the floor, the back wall and in between.
+    Keypoints are 0.5 px off; depths ``depth_noise`` times the sensor's sigma_Z (which the
+    observations state as their sigma either way)."""
     angles = np.radians(np.linspace(-arc_degrees / 2, arc_degrees / 2, keyframes))
     poses = []
     for angle in angles:
@@ -83,7 +86,7 @@ def make_scene(rng, keyframes=8, landmarks=300, fraction_2d=0.15, arc_degrees=40
             visible = np.sort(rng.choice(visible, max_per_keyframe, replace=False))
         pixels = np.column_stack([u[visible], v[visible]]) + rng.normal(0, 0.5, (len(visible), 2))
         sigma_z = KINECT_SIGMA_Z_COEFFICIENT * z[visible] ** 2
-        depth = z[visible] + rng.normal(0, 1, len(visible)) * sigma_z
+        depth = z[visible] + rng.normal(0, 1, len(visible)) * sigma_z * depth_noise
         camera_points = backproject_pixels(pixels[:, 0], pixels[:, 1], depth, FX, FY, CX, CY)
         is_2d = rng.random(len(visible)) < fraction_2d
         camera_points[is_2d] = np.nan
@@ -376,7 +379,8 @@ def test_points_seen_by_one_keyframe_move_with_it_as_a_full_solve_would(monkeypa
     rng = np.random.default_rng(21)
     scene = make_scene(rng, keyframes=6, landmarks=900, max_per_keyframe=120, planes=2)
     the_map = build_map(scene, rng)
-    config = BundleAdjustmentConfig(enabled=True, max_iterations=200)
+    # (the noise is estimated from the residuals, which the points seen once would change)
+    config = BundleAdjustmentConfig(enabled=True, max_iterations=200, estimate_noise=False)
     problem = BundleProblem.from_map(the_map, config, NOISE, K)
     carried = problem.carried_point_ids
     assert len(carried) > 100 and not np.isin(carried, problem.point_ids).any()
@@ -482,9 +486,9 @@ def run_incremental(asynchronous: bool, seed: int = 9, slow_worker: bool = False
         if slow_worker:
             original = BundleProblem.solve
 
-            def slow_solve(self, cfg):
+            def slow_solve(self, *args):
                 time.sleep(0.05)
-                return original(self, cfg)
+                return original(self, *args)
 
             BundleProblem.solve = slow_solve
         try:
@@ -568,3 +572,67 @@ def test_window_of_ten_keyframes_with_5000_observations():
     # (its speed is a benchmark figure, not a test assertion)
     translation, _ = pose_errors(the_map, scene)
     assert translation[1:].max() < 0.005
+
+
+def test_noise_components_are_estimated_from_the_residuals():
+    """Depths four times noisier than the sigma they state, keypoints half the configured
+    pixel sigma off: the run finds both from its residuals and weighs by them, which puts the
+    landmarks nearer the truth than the configured sigmas do. The plane offsets (24 residuals)
+    are too few to estimate and keep theirs."""
+    rng = np.random.default_rng(3)
+    scene = make_scene(rng, keyframes=8, landmarks=600, depth_noise=4.0)
+    estimated = build_map(scene, rng)
+    configured = copy.deepcopy(estimated)
+    result = bundle_adjust(estimated, BundleAdjustmentConfig(enabled=True), NOISE, K)
+    fixed = bundle_adjust(configured, BundleAdjustmentConfig(enabled=True, estimate_noise=False), NOISE, K)
+    assert result.success and fixed.success and fixed.passes == 1
+    assert np.array_equal(fixed.noise_components, np.ones(len(GROUPS)))
+    components = dict(zip(GROUPS, result.noise_components))
+    assert 0.4 < components["reprojection"] < 0.6 and 0.4 < components["pixel_2d"] < 0.6
+    assert 3.5 < components["depth"] < 5.0
+    assert components["plane_offset"] == 1.0
+    assert 2 <= result.passes <= 3
+    assert landmark_rmse(estimated, scene) < 0.6 * landmark_rmse(configured, scene)
+
+
+def test_components_are_updated_within_bounds():
+    components = np.array([1.0, 2.0, 1.0, 0.5, 1.0])
+    spread = np.array([0.5, 1.5, np.nan, 0.0, 100.0])
+    assert np.allclose(update(components, spread), [0.5, 3.0, 1.0, 0.5, BOUNDS[1]])
+
+
+def test_the_static_maps_estimate_carries_to_its_next_run_and_to_object_maps(monkeypatch):
+    """The static map's runs estimate the sensor's noise, each from where the last applied one
+    ended; an object map's run uses that estimate as it is (one solve, not re-estimated)."""
+    rng = np.random.default_rng(10)
+    scene = make_scene(rng, keyframes=8, landmarks=400, depth_noise=4.0)
+    full = build_map(scene, rng)
+    static_map, object_map = Map("static"), ObjectMap(1, 0)
+    for the_map in (static_map, object_map):
+        the_map.points, the_map.planes = copy.deepcopy(full.points), copy.deepcopy(full.planes)
+    calls = []
+    original = BundleProblem.solve
+
+    def recording_solve(self, config, noise_components=None, estimate=None):
+        calls.append((self.map_name, None if noise_components is None else noise_components.copy(), estimate))
+        return original(self, config, noise_components, estimate)
+
+    monkeypatch.setattr(BundleProblem, "solve", recording_solve)
+    config = BundleAdjustmentConfig(enabled=True, every_keyframes=3, asynchronous=False)
+    with BundleScheduler(config, NOISE, K) as scheduler:
+        for keyframe in full.keyframes[:6]:
+            static_map.keyframes.append(keyframe)
+            scheduler.maybe_start(static_map)
+        scheduler.finish(static_map)
+        for keyframe in full.keyframes[:3]:
+            object_map.keyframes.append(copy.deepcopy(keyframe))
+        scheduler.maybe_start(object_map)
+        object_result = scheduler.finish(object_map)
+    first, second = scheduler.results[:2]
+    assert [(name, estimate) for name, _, estimate in calls] == [("static", True), ("static", True),
+                                                                 ("object_1", False)]
+    assert calls[0][1] is None and np.array_equal(calls[1][1], first.noise_components)
+    assert first.noise_components[1] > 2.0  # the depth is noisier than stated
+    assert second.passes <= first.passes
+    assert np.array_equal(calls[2][1], second.noise_components)
+    assert object_result.passes == 1 and np.array_equal(object_result.noise_components, second.noise_components)

@@ -32,6 +32,10 @@ Residuals, each divided by its sigma so that the Huber scale is in sigmas:
   landmark: the normal difference (3) over ``plane_normal_sigma`` and the offset difference
   (1) over ``plane_offset_sigma``.
 
+Each of these sigmas is then multiplied by a *variance component* estimated from the residuals
+(``estimate_noise``, :mod:`~jsr.pipeline.bundle_noise`): on real footage the depth residuals
+spread more than the sensor model says and the reprojections less.
+
 ``scipy.optimize.least_squares(method="trf")`` with a Huber loss
 (:func:`~jsr.pipeline.robust_loss.huber_loss`: scipy's ``"huber"`` cost with
 reweighted-least-squares curvature) solves it with an analytic sparse Jacobian
@@ -57,6 +61,7 @@ from scipy.spatial.transform import Rotation
 from jsr.config import BundleAdjustmentConfig, NoiseConfig
 from jsr.geometry import invert_transform, transform_points
 from jsr.pipeline.bundle_jacobian import analytic_jacobian
+from jsr.pipeline.bundle_noise import GROUPS, MAX_PASSES, TOLERANCE, measured_spread, reweigh, update
 from jsr.pipeline.maps import Map
 from jsr.pipeline.robust_loss import huber_cost, huber_loss
 
@@ -86,7 +91,10 @@ class BundleResult:
     ``cpu_seconds`` the CPU time of the thread that ran it. ``correction`` is
     ``T_after @ inv(T_before)`` of the newest free keyframe (identity if none moved): a caller
     holding a pose expressed against the old map (e.g. the tracker's last pose) can left-multiply
-    it.
+    it. ``noise_components`` ``(5,)``: each residual group's sigma (:data:`~jsr.pipeline.bundle_noise.GROUPS`)
+    as a multiple of the configured one, as this run ended with them (estimated from its
+    residuals when it estimated them, :mod:`~jsr.pipeline.bundle_noise`); ``passes`` the solves
+    it took.
     """
 
     success: bool
@@ -103,6 +111,8 @@ class BundleResult:
     points_carried: int = 0
     message: str = ""
     correction: np.ndarray = field(default_factory=lambda: np.eye(4))
+    noise_components: np.ndarray = field(default_factory=lambda: np.ones(len(GROUPS)))
+    passes: int = 0
 
 
 @dataclass
@@ -175,7 +185,8 @@ class BundleProblem:
         self.carried_point_ids = np.zeros(0, dtype=np.int64)
         self.carried_keyframes = np.zeros(0, dtype=np.int64)
         self.intrinsics = np.eye(3)
-        self.pixel_weight = 1.0
+        self.pixel_weight = 1.0  # reprojection of points with depth
+        self.pixel2d_weight = 1.0  # points without depth
         self.normal_weight = 100.0
         self.offset_weight = 100.0
         self.num_keyframes = 0
@@ -207,6 +218,7 @@ class BundleProblem:
         problem.num_planes = len(map.planes)
         problem.intrinsics = np.asarray(intrinsics_matrix, dtype=float).copy()
         problem.pixel_weight = 1.0 / config.pixel_sigma
+        problem.pixel2d_weight = 1.0 / config.pixel_sigma
         problem.normal_weight = 1.0 / config.plane_normal_sigma
         problem.offset_weight = 1.0 / config.plane_offset_sigma
 
@@ -397,7 +409,7 @@ class BundleProblem:
             f = self.intrinsics
             u = f[0, 0] * local[:, 0] / z + f[0, 1] * local[:, 1] / z + f[0, 2]
             v = f[1, 1] * local[:, 1] / z + f[1, 2]
-            parts.append(((np.column_stack([u, v]) - self.obs2_pixels) * self.pixel_weight).ravel())
+            parts.append(((np.column_stack([u, v]) - self.obs2_pixels) * self.pixel2d_weight).ravel())
         if len(self.obsp_keyframe):
             k = self.obsp_keyframe
             normals = np.einsum("nij,nj->ni", rotations[k], self.obsp_camera[:, :3])
@@ -414,36 +426,61 @@ class BundleProblem:
         return analytic_jacobian(self, x)
 
     # ------------------------------------------------------------------ solving
-    def solve(self, config: BundleAdjustmentConfig) -> BundleSolution:
-        """Run the robust least-squares; never touches a map."""
+    def _least_squares(self, x_start: np.ndarray, config: BundleAdjustmentConfig
+                       ) -> tuple[np.ndarray | None, float, int, str]:
+        """One robust solve from the increments ``x_start`` under the current weights:
+        ``(x, cost, residual evaluations, message)``, ``x`` None when the solver failed or did
+        not lower the cost."""
+        start_cost = huber_cost(self.residuals(x_start), config.huber_sigmas)
+        try:
+            # The solver sees increments + SOLVER_OFFSET: scipy's first trust radius is
+            # |x0| in scaled units (1 when x0 = 0), which would cost ~7 doubling iterations.
+            solution = least_squares(
+                lambda y: self.residuals(y - SOLVER_OFFSET), x_start + SOLVER_OFFSET,
+                jac=lambda y: self.jacobian(y - SOLVER_OFFSET), method="trf", loss=huber_loss, f_scale=config.huber_sigmas,
+                x_scale="jac", max_nfev=config.max_iterations, ftol=FTOL,
+            )
+        except (ValueError, np.linalg.LinAlgError) as error:
+            return None, start_cost, 0, f"solver failed: {error}"
+        final = float(solution.cost)
+        # status 0 is "max_nfev reached": still an improvement worth keeping
+        if solution.status >= 0 and np.all(np.isfinite(solution.x)) and final <= start_cost:
+            return solution.x - SOLVER_OFFSET, final, int(solution.nfev), str(solution.message)
+        return None, start_cost, int(solution.nfev), f"rejected: {solution.message} (cost {start_cost:.6g} -> {final:.6g})"
+
+    def solve(self, config: BundleAdjustmentConfig, noise_components: np.ndarray | None = None,
+              estimate: bool | None = None) -> BundleSolution:
+        """Run the robust least-squares; never touches a map. Each group's sigma is
+        ``noise_components`` ``(5,)`` times the configured one (the configured one when None).
+        With ``estimate`` (default ``config.estimate_noise``) the components are re-estimated
+        from the residuals between solves (:mod:`~jsr.pipeline.bundle_noise`); the costs are
+        then those under the first and the last solve's sigmas."""
         started = time.perf_counter()
         cpu_started = time.thread_time()
-        x0 = np.zeros(self.num_parameters)
-        initial = self.residuals(x0)
-        initial_cost = huber_cost(initial, config.huber_sigmas)
-        message = ""
-        x, final_cost, iterations, success = x0, initial_cost, 0, False
+        estimate = config.estimate_noise if estimate is None else estimate
+        components = np.ones(len(GROUPS)) if noise_components is None else np.asarray(noise_components, float).copy()
+        reweigh(self, components)
+        x = np.zeros(self.num_parameters)
+        initial_cost = huber_cost(self.residuals(x), config.huber_sigmas)
+        final_cost, iterations, success, passes, message = initial_cost, 0, False, 0, ""
+        solves = MAX_PASSES if estimate else 1
         if self.num_residuals < self.num_parameters:
             message = f"underdetermined: {self.num_residuals} residuals for {self.num_parameters} parameters"
-        else:
-            try:
-                # The solver sees increments + SOLVER_OFFSET: scipy's first trust radius is
-                # |x0| in scaled units (1 when x0 = 0), which would cost ~7 doubling iterations.
-                solution = least_squares(
-                    lambda y: self.residuals(y - SOLVER_OFFSET), x0 + SOLVER_OFFSET,
-                    jac=lambda y: self.jacobian(y - SOLVER_OFFSET), method="trf", loss=huber_loss, f_scale=config.huber_sigmas,
-                    x_scale="jac", max_nfev=config.max_iterations, ftol=FTOL,
-                )
-            except (ValueError, np.linalg.LinAlgError) as error:
-                message = f"solver failed: {error}"
-            else:
-                iterations, message = int(solution.nfev), str(solution.message)
-                final = float(solution.cost)
-                # status 0 is "max_nfev reached": still an improvement worth keeping
-                if solution.status >= 0 and np.all(np.isfinite(solution.x)) and final <= initial_cost:
-                    x, final_cost, success = solution.x - SOLVER_OFFSET, final, True
-                else:
-                    message = f"rejected: {message} (cost {initial_cost:.6g} -> {final:.6g})"
+            solves = 0
+        for _ in range(solves):
+            solved, cost, evaluations, message = self._least_squares(x, config)
+            iterations += evaluations
+            if solved is None:
+                break
+            x, final_cost, success, passes = solved, cost, True, passes + 1
+            if not estimate:
+                break
+            estimated = update(components, measured_spread(self, x))
+            reweigh(self, estimated / components)
+            moved = float(np.max(np.abs(estimated / components - 1.0)))
+            components = estimated
+            if moved <= TOLERANCE:
+                break
         rotations, translations, positions, planes = self.unpack(x)
         after = self.poses.copy()
         after[:, :3, :3] = rotations
@@ -466,12 +503,15 @@ class BundleProblem:
             points_carried=len(self.carried_point_ids),
             message=message,
             correction=correction,
+            noise_components=components,
+            passes=passes,
         )
         logger.debug("%s: bundle adjustment %s: %d keyframes (+%d fixed), %d points (+%d seen once, carried), "
-                     "%d planes, %d observations, cost %.4g -> %.4g in %d evaluations, %.3f s", self.map_name,
-                     "done" if success else "failed", result.keyframes_optimised, result.keyframes_fixed,
-                     result.landmarks_optimised, result.points_carried, result.planes_optimised, result.observations,
-                     initial_cost, final_cost, iterations, result.seconds)
+                     "%d planes, %d observations, cost %.4g -> %.4g in %d evaluations and %d solves, %.3f s; "
+                     "sigmas x %s (%s)", self.map_name, "done" if success else "failed", result.keyframes_optimised,
+                     result.keyframes_fixed, result.landmarks_optimised, result.points_carried, result.planes_optimised,
+                     result.observations, initial_cost, final_cost, iterations, passes, result.seconds,
+                     np.array2string(components, precision=2), ", ".join(GROUPS))
         return BundleSolution(
             result=result,
             keyframe_indices=self.keyframe_indices[free],

@@ -126,7 +126,7 @@ def analytic_jacobian(problem, x: np.ndarray) -> csr_matrix:
             d[:, 0, 2] = -(f[0, 0] * local[:, 0] + f[0, 1] * local[:, 1]) / z**2
             d[:, 1, 1] = f[1, 1] / z
             d[:, 1, 2] = -f[1, 1] * local[:, 1] / z**2
-            return d * problem.pixel_weight
+            return d * problem.pixel2d_weight
 
         blocks.append(point_blocks(problem.obs2_keyframe, problem.obs2_point, d_local2))
     if len(problem.obsp_keyframe):

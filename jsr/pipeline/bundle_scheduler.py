@@ -16,7 +16,7 @@ import numpy as np
 
 from jsr.config import BundleAdjustmentConfig, NoiseConfig
 from jsr.pipeline.bundle import BundleProblem, BundleResult, BundleSolution, apply_solution
-from jsr.pipeline.maps import Map
+from jsr.pipeline.maps import Map, ObjectMap
 
 logger = logging.getLogger(__name__)
 
@@ -31,6 +31,9 @@ class BundleScheduler:
       waiting for it if needed (``wait=True``, the deterministic mode). With ``wait=False`` it
       applies only a job that is already done -- timing-dependent, for callers that prefer that.
     * :meth:`finish` waits and applies; :meth:`shutdown` stops the worker.
+    * The sensor's noise (:mod:`~jsr.pipeline.bundle_noise`): each run of the static map
+      starts from the components its last applied run estimated (``noise_components``) and
+      estimates them again; object maps' runs use them as they are.
 
     With ``config.asynchronous`` false the solve runs inside :meth:`maybe_start` but is still
     applied at the next :meth:`apply_finished`, so both modes give identical maps. A map with a
@@ -45,6 +48,9 @@ class BundleScheduler:
         self._executor: ThreadPoolExecutor | None = None
         self._pending: weakref.WeakKeyDictionary[Map, Future] = weakref.WeakKeyDictionary()
         self._started_at: weakref.WeakKeyDictionary[Map, int] = weakref.WeakKeyDictionary()
+        # the sensor's noise components (bundle_noise) as the static map's last applied run
+        # estimated them; None until then
+        self.noise_components: np.ndarray | None = None
 
     def pending(self, map: Map) -> bool:
         """True if a job of ``map`` was started and not applied yet."""
@@ -68,11 +74,11 @@ class BundleScheduler:
         if config.asynchronous:
             if self._executor is None:
                 self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jsr-bundle")
-            future = self._executor.submit(problem.solve, config)
+            future = self._executor.submit(problem.solve, config, self.noise_components, self._estimates(map))
         else:
             future = Future()
             try:
-                future.set_result(problem.solve(config))
+                future.set_result(problem.solve(config, self.noise_components, self._estimates(map)))
             except Exception as error:  # raised at apply time, as in the asynchronous mode
                 future.set_exception(error)
         self._pending[map] = future
@@ -89,12 +95,21 @@ class BundleScheduler:
         del self._pending[map]
         solution: BundleSolution = future.result()  # re-raises an error of the worker
         apply_solution(map, solution)
+        if solution.result.success and self._estimates(map):
+            self.noise_components = solution.result.noise_components
         self.results.append(solution.result)
         return solution.result
 
     def finish(self, map: Map) -> BundleResult | None:
         """Wait for and apply the job of ``map``, if any."""
         return self.apply_finished(map, wait=True)
+
+    def _estimates(self, map: Map) -> bool:
+        """Whether runs of ``map`` estimate the sensor's noise components: those of the static
+        map, with ``estimate_noise``. An object map's windows hold a few hundred observations
+        of one object (on a composite, a rendered one whose depth has no noise at all); its
+        runs use the static map's estimate, from the same sensor."""
+        return self.config.estimate_noise and not isinstance(map, ObjectMap)
 
     def shutdown(self) -> None:
         """Stop the worker; jobs not applied yet are discarded (call :meth:`finish` first to keep them)."""
