@@ -595,6 +595,24 @@ def test_noise_components_are_estimated_from_the_residuals():
     assert landmark_rmse(estimated, scene) < 0.6 * landmark_rmse(configured, scene)
 
 
+def test_a_solve_leaves_the_problems_weights_as_they_were():
+    """Solving reweighs the residuals, then puts the configured weights back: solving the same
+    problem twice gives the same answer."""
+    rng = np.random.default_rng(4)
+    scene = make_scene(rng, keyframes=6, landmarks=300, depth_noise=4.0)
+    problem = BundleProblem.from_map(build_map(scene, rng), BundleAdjustmentConfig(enabled=True), NOISE, K)
+    before = (problem.pixel_weight, problem.obs3_weight.copy(), problem.pixel2d_weight, problem.normal_weight,
+              problem.offset_weight)
+    first = problem.solve(BundleAdjustmentConfig(enabled=True), np.full(len(GROUPS), 2.0))
+    assert first.result.success and first.result.passes >= 2
+    after = (problem.pixel_weight, problem.obs3_weight, problem.pixel2d_weight, problem.normal_weight,
+             problem.offset_weight)
+    assert all(np.array_equal(a, b) for a, b in zip(before, after))
+    second = problem.solve(BundleAdjustmentConfig(enabled=True), np.full(len(GROUPS), 2.0))
+    assert np.array_equal(first.poses_after, second.poses_after)
+    assert np.array_equal(first.result.noise_components, second.result.noise_components)
+
+
 def test_components_are_updated_within_bounds():
     components = np.array([1.0, 2.0, 1.0, 0.5, 1.0])
     spread = np.array([0.5, 1.5, np.nan, 0.0, 100.0])

@@ -61,7 +61,8 @@ from scipy.spatial.transform import Rotation
 from jsr.config import BundleAdjustmentConfig, NoiseConfig
 from jsr.geometry import invert_transform, transform_points
 from jsr.pipeline.bundle_jacobian import analytic_jacobian
-from jsr.pipeline.bundle_noise import GROUPS, MAX_PASSES, TOLERANCE, measured_spread, reweigh, update
+from jsr.pipeline.bundle_noise import (BOUNDS, GROUPS, MAX_PASSES, TOLERANCE, measured_spread, restore, reweigh,
+                                       update, weights)
 from jsr.pipeline.maps import Map
 from jsr.pipeline.robust_loss import huber_cost, huber_loss
 
@@ -92,9 +93,11 @@ class BundleResult:
     ``T_after @ inv(T_before)`` of the newest free keyframe (identity if none moved): a caller
     holding a pose expressed against the old map (e.g. the tracker's last pose) can left-multiply
     it. ``noise_components`` ``(5,)``: each residual group's sigma (:data:`~jsr.pipeline.bundle_noise.GROUPS`)
-    as a multiple of the configured one, as this run ended with them (estimated from its
-    residuals when it estimated them, :mod:`~jsr.pipeline.bundle_noise`); ``passes`` the solves
-    it took.
+    as a multiple of the configured one: when the run estimated them
+    (:mod:`~jsr.pipeline.bundle_noise`), the estimate from its last solve's residuals (what the
+    next run starts from; the last solve itself used the one before), else those it used.
+    ``passes``: the solves it took (``iterations`` counts over all of them, up to
+    ``max_iterations`` each).
     """
 
     success: bool
@@ -458,7 +461,9 @@ class BundleProblem:
         started = time.perf_counter()
         cpu_started = time.thread_time()
         estimate = config.estimate_noise if estimate is None else estimate
-        components = np.ones(len(GROUPS)) if noise_components is None else np.asarray(noise_components, float).copy()
+        components = (np.ones(len(GROUPS)) if noise_components is None
+                      else np.clip(np.nan_to_num(np.asarray(noise_components, float), nan=1.0), *BOUNDS))
+        configured = weights(self)  # put back at the end: a solve leaves the problem as it was
         reweigh(self, components)
         x = np.zeros(self.num_parameters)
         initial_cost = huber_cost(self.residuals(x), config.huber_sigmas)
@@ -468,11 +473,12 @@ class BundleProblem:
             message = f"underdetermined: {self.num_residuals} residuals for {self.num_parameters} parameters"
             solves = 0
         for _ in range(solves):
-            solved, cost, evaluations, message = self._least_squares(x, config)
+            solved, cost, evaluations, outcome = self._least_squares(x, config)
             iterations += evaluations
-            if solved is None:
+            if solved is None:  # keep the last solve that succeeded, if any
+                message = f"{message}; solve {passes + 1}: {outcome}" if success else outcome
                 break
-            x, final_cost, success, passes = solved, cost, True, passes + 1
+            x, final_cost, success, passes, message = solved, cost, True, passes + 1, outcome
             if not estimate:
                 break
             estimated = update(components, measured_spread(self, x))
@@ -481,6 +487,7 @@ class BundleProblem:
             components = estimated
             if moved <= TOLERANCE:
                 break
+        restore(self, configured)
         rotations, translations, positions, planes = self.unpack(x)
         after = self.poses.copy()
         after[:, :3, :3] = rotations

@@ -71,14 +71,15 @@ class BundleScheduler:
         problem = BundleProblem.from_map(map, config, self.noise, self.intrinsics_matrix, window)
         if problem is None:
             return False
+        arguments = (config, self.noise_components, self._estimates(map))
         if config.asynchronous:
             if self._executor is None:
                 self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jsr-bundle")
-            future = self._executor.submit(problem.solve, config, self.noise_components, self._estimates(map))
+            future = self._executor.submit(problem.solve, *arguments)
         else:
             future = Future()
             try:
-                future.set_result(problem.solve(config, self.noise_components, self._estimates(map)))
+                future.set_result(problem.solve(*arguments))
             except Exception as error:  # raised at apply time, as in the asynchronous mode
                 future.set_exception(error)
         self._pending[map] = future
