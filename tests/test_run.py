@@ -12,6 +12,7 @@ from jsr.config import load_config
 from jsr.io.dataset import open_sequence
 from jsr.io.trajectory import read_tum_trajectory
 from jsr.io.writers import read_csv
+from jsr.pipeline.bundle_noise import BOUNDS, GROUPS
 from jsr.pipeline.run import run_reconstruction
 
 
@@ -47,6 +48,23 @@ def test_complete_run_files_agree(synth_sequence, tmp_path):
     assert np.allclose(keyframe_poses[0], np.eye(4))
     timings = read_csv(tmp_path / "timings.csv")
     assert len(timings) == 8 and "sift_ms" in timings[0]
+
+
+@pytest.mark.parametrize("estimate", [True, False])
+def test_summary_records_the_estimated_sensor_noise(synth_sequence, tmp_path, estimate):
+    """summary.json's ``sensor_noise``: each kind of residual's sigma as a multiple of the
+    configured one, as the static map's bundle adjustment estimated it; null when not estimated."""
+    sequence = open_sequence(synth_sequence, max_frames=8)
+    config = load_config(None, ["bundle_adjustment.every_keyframes=2", f"bundle_adjustment.estimate_noise={estimate}"])
+    run_reconstruction(sequence, config, tmp_path, dense_models=False)
+    noise = json.loads((tmp_path / "summary.json").read_text())["sensor_noise"]
+    if not estimate:
+        assert noise is None
+        return
+    assert list(noise) == list(GROUPS)
+    assert all(BOUNDS[0] <= value <= BOUNDS[1] for value in noise.values())
+    # the synthetic sequence's keypoints are far more precise than the configured 1 px
+    assert noise["reprojection"] < 0.5
 
 
 def test_summary_records_the_dependency_versions(synth_sequence, tmp_path):

@@ -34,6 +34,7 @@ import numpy as np
 from jsr.config import Config
 from jsr.io.camera import CameraIntrinsics
 from jsr.io.dataset import Frame
+from jsr.pipeline.bundle_noise import GROUPS
 from jsr.pipeline.bundle_scheduler import BundleScheduler
 from jsr.pipeline.classify import classify_frame
 from jsr.pipeline.confirmation import drop_undecided, weigh_maps
@@ -122,6 +123,15 @@ class Reconstructor:
     def objects_dissolved(self) -> list[int]:
         """Ids of the candidates that never moved beyond the noise (given to the static map)."""
         return self.state.dissolved
+
+    @property
+    def sensor_noise(self) -> dict[str, float] | None:
+        """The sensor's noise as bundle adjustment estimated it from the static map's residuals
+        (:mod:`~jsr.pipeline.bundle_noise`): per kind of residual, its sigma as a multiple of the
+        configured one; None before the static map's first bundle adjustment was applied, or
+        with ``bundle_adjustment.estimate_noise`` off."""
+        components = self.state.bundle.noise_components
+        return None if components is None else {name: float(v) for name, v in zip(GROUPS, components)}
 
     @property
     def objects_non_rigid(self) -> list[int]:

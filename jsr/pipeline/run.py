@@ -191,6 +191,7 @@ class ResultsWriter:
                 "frames": sum(r.dynamic_pixels > 0 for r in reports),
                 "per_frame": [r.dynamic_pixels for r in reports],
             },
+            "sensor_noise": reconstructor.sensor_noise,
             "timings": timing_summary,
             "platform": platform.platform(),
             "dependencies": dependency_versions(),
