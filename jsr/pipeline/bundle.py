@@ -482,10 +482,10 @@ class BundleProblem:
             if not estimate:
                 break
             estimated = update(components, measured_spread(self, x))
-            reweigh(self, estimated / components)
-            moved = float(np.max(np.abs(estimated / components - 1.0)))
+            change = estimated / components
+            reweigh(self, change)
             components = estimated
-            if moved <= TOLERANCE:
+            if float(np.max(np.abs(change - 1.0))) <= TOLERANCE:
                 break
         restore(self, configured)
         rotations, translations, positions, planes = self.unpack(x)
@@ -617,7 +617,7 @@ def apply_solution(map: Map, solution: BundleSolution) -> None:
             positions[carried] = transform_points(keyframe_correction, positions[carried])
     if moved and len(map.points) > solution.num_points:
         new = slice(solution.num_points, len(map.points))
-        positions[new] = positions[new] @ correction[:3, :3].T + correction[:3, 3]
+        positions[new] = transform_points(correction, positions[new])
 
     if len(solution.plane_ids):
         ids = solution.plane_ids
@@ -635,7 +635,7 @@ def apply_solution(map: Map, solution: BundleSolution) -> None:
         normals = map.planes.planes[new, :3] @ correction[:3, :3].T
         offsets = map.planes.planes[new, 3] - normals @ correction[:3, 3]
         map.planes.planes[new] = np.column_stack([normals, offsets])
-        map.planes.centroids[new] = map.planes.centroids[new] @ correction[:3, :3].T + correction[:3, 3]
+        map.planes.centroids[new] = transform_points(correction, map.planes.centroids[new])
 
 
 def _skipped(message: str) -> BundleResult:
