@@ -239,6 +239,7 @@ class RunRecord:
     object_poses: dict[int, dict[int, np.ndarray]] = field(default_factory=dict)  # map K -> frame -> written T_w_o
     static_map: object = None
     object_maps: list = field(default_factory=list)
+    loops_closed: int = 0  # loops the static map closed (jsr.pipeline.loop_closure)
 
 
 def run_pipeline(sequence, config, labels_dir: Path | None) -> RunRecord:
@@ -275,6 +276,7 @@ def run_pipeline(sequence, config, labels_dir: Path | None) -> RunRecord:
         record.seconds += time.perf_counter() - started
         record.poses = {r.frame_index: reconstructor.current_pose(r) for r in record.reports if r.tracked}
         record.static_map = reconstructor.static_map
+        record.loops_closed = len(reconstructor.loops_closed)
         record.object_maps = list(reconstructor.object_maps)
         for object_map in record.object_maps:
             _, written = reconstructor.object_trajectory(object_map)

@@ -22,6 +22,7 @@ per sequence, over the seeds (mean, and the worst where it matters):
   object's first motion on);
 * dynamic pixels: share of the pixels labelled moving-but-unmodelled (255), and in how many
   frames;
+* loops closed by the static map, per seed;
 * cost: fps (frames over the time spent in ``process`` and ``finish``), median, p95 and maximum
   frame time (ms, ``FrameReport.timings_ms['frame_total']``).
 
@@ -78,6 +79,7 @@ def run_once(path: Path, config, frames: int | None) -> dict:
     result["dynamic_share"] = float(dynamic.sum() / (len(dynamic) * pixels)) if len(dynamic) else 0.0
     result["dynamic_frames"] = int((dynamic > 0).sum())
     result["confirmed"] = sorted({k for r in record.reports for k in r.objects_created})
+    result["loops_closed"] = record.loops_closed
     return result
 
 
@@ -93,7 +95,8 @@ def summarise(name: str, runs: list[dict]) -> dict:
            "dynamic_share": mean([r["dynamic_share"] for r in runs]),
            "dynamic_frames": mean([r["dynamic_frames"] for r in runs]),
            "maps_kept": [r["maps_created"] for r in runs],
-           "confirmed": [len(r["confirmed"]) for r in runs]}
+           "confirmed": [len(r["confirmed"]) for r in runs],
+           "loops": [r.get("loops_closed", 0) for r in runs]}
     if not static:
         objects = [o for r in runs for o in r["objects"] if o["true_id"] in r["true_moving_objects"]]
         row["one_map_each"] = sum(len(o["maps"]) == 1 for o in objects), len(objects)
@@ -119,7 +122,7 @@ def _cell(value, spec: str, miss: bool = False) -> str:
 def print_table(rows: list[dict]) -> None:
     """One line per sequence; ``*`` marks a missed target."""
     header = (f"{'sequence':<24} {'frames':>6} {'ATE cm':>7} {'maps':>9} {'one map':>7} {'delay':>5} "
-              f"{'pose cm/deg':>11} {'prec':>5} {'rec':>5} {'dyn %':>6} {'fps':>5} {'med/p95/max ms':>16}")
+              f"{'pose cm/deg':>11} {'prec':>5} {'rec':>5} {'dyn %':>6} {'loops':>7} {'fps':>5} {'med/p95/max ms':>16}")
     print(header)
     print("-" * len(header))
     for row in rows:
@@ -142,8 +145,9 @@ def print_table(rows: list[dict]) -> None:
         slow = people and (row["p95_ms"] > TARGETS["p95_over_median"] * row["median_ms"]
                            or row["max_ms"] > TARGETS["max_frame_ms"])
         times = f"{row['median_ms']:.0f}/{row['p95_ms']:.0f}/{row['max_ms']:.0f}" + ("*" if slow else "")
+        loops = "/".join(str(count) for count in row["loops"])
         print(f"{row['name']:<24} {row['frames']:>6} {ate:>7} {maps_cell:>9} {one:>7} {delay:>5} {pose:>11} "
-              f"{precision:>5} {recall:>5} {100 * row['dynamic_share']:>6.1f} {fps:>5} {times:>16}")
+              f"{precision:>5} {recall:>5} {100 * row['dynamic_share']:>6.1f} {loops:>7} {fps:>5} {times:>16}")
 
 
 def main() -> int:

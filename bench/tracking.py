@@ -1,21 +1,27 @@
 """Camera tracking benchmark: jsr's static mapping against Open3D RGB-D odometry.
 
 Runs `jsr reconstruct` (through the library) and `jsr evaluate` on a synthetic static
-sequence, ../shared/data/redkitchen300 and ../shared/data/bonn_crowd200, and, in the same run
-and on the same frames, Open3D's frame-to-frame RGB-D odometry with the hybrid term. Prints
-ATE RMSE and frames per second of both side by side.
+sequence, ../shared/data/redkitchen300, bonn_crowd200 and bonn_crowd_people, and
+``redkitchen300_back``: redkitchen300 played forward and then back to its first frame (599
+frames, links to its images, made in a temporary folder), where the camera comes back to
+places it mapped 10-20 s before, for loop closure. In the same run and on the same frames it
+times Open3D's frame-to-frame RGB-D odometry with the hybrid term. Prints, side by side, ATE
+RMSE, RPE (translation RMSE between consecutive frames), frames lost, loops closed, keyframes
+and frames per second.
 
 jsr runs once per seed (``--seeds``, default 0,1,2): RANSAC makes single-seed figures move by
 a centimetre on the real sequences, so the headline is the mean over the seeds, with each
 seed's figure beside it. Open3D's odometry is deterministic and runs once.
 
-    python bench/tracking.py [--frames N] [--sequences synthetic,redkitchen300,bonn_crowd200] [--seeds 0,1,2]
+    python bench/tracking.py [--frames N] [--seeds 0,1,2]
+        [--sequences synthetic,redkitchen300,bonn_crowd200,bonn_crowd_people,redkitchen300_back]
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 import tempfile
 import time
@@ -73,11 +79,45 @@ def synthetic_static(root: Path, frames: int) -> Path:
     return out
 
 
+def there_and_back(source: Path, root: Path) -> Path:
+    """A TUM folder playing ``source`` forward and then back to its first frame (links to its
+    images, its ground truth in the same order; timestamps continue at the same rate)."""
+    def rows(name):
+        return [line.split() for line in (source / name).read_text().splitlines()
+                if line.strip() and not line.startswith("#")]
+
+    colour, depth, truth = rows("rgb.txt"), rows("depth.txt"), rows("groundtruth.txt")
+    truth_times = np.array([float(row[0]) for row in truth])
+    order = list(range(len(colour))) + list(range(len(colour) - 2, -1, -1))
+    step = float(colour[1][0]) - float(colour[0][0])
+    root.mkdir(parents=True)
+    for folder in ("rgb", "depth"):
+        (root / folder).mkdir()
+    depth_times = np.array([float(row[0]) for row in depth])
+    lines = {"rgb.txt": [], "depth.txt": [], "groundtruth.txt": []}
+    for k, i in enumerate(order):
+        stamp = f"{float(colour[0][0]) + k * step:.6f}"
+        taken = float(colour[i][0])
+        nearest = int(np.argmin(np.abs(depth_times - taken)))  # as the sequence reader associates them
+        for name, image, folder in (("rgb.txt", colour[i][1], "rgb"), ("depth.txt", depth[nearest][1], "depth")):
+            link = Path(folder) / f"{k:05d}{Path(image).suffix}"
+            os.symlink(source / image, root / link)
+            lines[name].append(f"{stamp} {link}")
+        closest = int(np.argmin(np.abs(truth_times - taken)))
+        if abs(truth_times[closest] - taken) <= 0.02:
+            lines["groundtruth.txt"].append(" ".join([stamp, *truth[closest][1:]]))
+    for name, content in lines.items():
+        (root / name).write_text("\n".join(content) + "\n")
+    os.symlink(source / "camera.yaml", root / "camera.yaml")
+    return root
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=None, help="frames per sequence (default: all)")
     parser.add_argument("--synthetic-frames", type=int, default=100)
-    parser.add_argument("--sequences", default="synthetic,redkitchen300,bonn_crowd200")
+    parser.add_argument("--sequences",
+                        default="synthetic,redkitchen300,bonn_crowd200,bonn_crowd_people,redkitchen300_back")
     parser.add_argument("--set", action="append", default=[], help="config override section.key=value")
     parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds jsr runs with (mean reported)")
     args = parser.parse_args()
@@ -95,6 +135,8 @@ def main() -> None:
         for name in args.sequences.split(","):
             if name == "synthetic":
                 path = synthetic_static(temporary, args.synthetic_frames)
+            elif name.endswith("_back") and (SHARED / name[: -len("_back")]).is_dir():
+                path = there_and_back(SHARED / name[: -len("_back")], temporary / name)
             else:
                 path = SHARED / name
                 if not path.is_dir():
@@ -102,30 +144,35 @@ def main() -> None:
                     continue
             sequence = open_sequence(path, max_frames=args.frames, max_time_difference=config.input.max_time_difference,
                                      min_depth=config.input.min_depth, max_depth=config.input.max_depth)
-            ates, fps, lost, keyframes = [], [], [], []
+            ates, rpes, fps, lost, loops, keyframes = [], [], [], [], [], []
             for seed in seeds:
                 out = temporary / f"run_{name}_seed{seed}"
                 out.mkdir()
                 summary = run_reconstruction(sequence, dataclasses.replace(config, seed=seed), out,
                                              dense_models=False)
-                ates.append(evaluate_run(out, path)["camera"]["ate"]["rmse"])
+                camera = evaluate_run(out, path)["camera"]
+                ates.append(camera["ate"]["rmse"])
+                rpes.append(camera["rpe"]["translation_rmse"])
                 fps.append(summary["fps"])
                 lost.append(summary["frames_lost"])
+                loops.append(len(summary["loops_closed"]))
                 keyframes.append(summary["maps"]["static"]["keyframes"])
             gt_t, gt_poses = sequence.groundtruth
             o3d_t, o3d_poses, o3d_fps = open3d_odometry(sequence)
             _, est, gt = associate_poses(o3d_t, o3d_poses, gt_t, gt_poses)
             o3d_ate = absolute_trajectory_error(est, gt).rmse
-            rows.append((name, len(sequence), ates, float(np.mean(fps)), max(lost), round(float(np.mean(keyframes))),
-                         o3d_ate, o3d_fps))
+            rows.append((name, len(sequence), ates, float(np.mean(rpes)), float(np.mean(fps)), max(lost), loops,
+                         round(float(np.mean(keyframes))), o3d_ate, o3d_fps))
     print()
-    print(f"jsr over seeds {args.seeds}: mean ATE, and each seed's; fps and keyframes are means, lost the most")
-    print(f"{'sequence':<16}{'frames':>7}{'jsr ATE cm':>12}  {'per seed':<20}{'jsr fps':>9}{'lost':>6}{'kf':>5}"
-          f"{'O3D ATE cm':>12}{'O3D fps':>9}")
-    for name, frames, ates, fps, lost, keyframes, o3d_ate, o3d_fps in rows:
+    print(f"jsr over seeds {args.seeds}: mean ATE, and each seed's; RPE, fps and keyframes are means, lost the "
+          "most, loops per seed")
+    print(f"{'sequence':<20}{'frames':>7}{'jsr ATE cm':>12}  {'per seed':<22}{'RPE cm':>7}{'jsr fps':>8}{'lost':>5}"
+          f"{'loops':>8}{'kf':>5}{'O3D ATE cm':>12}{'O3D fps':>9}")
+    for name, frames, ates, rpe, fps, lost, loops, keyframes, o3d_ate, o3d_fps in rows:
         per_seed = " / ".join(f"{ate * 100:.2f}" for ate in ates)
-        print(f"{name:<16}{frames:>7}{np.mean(ates) * 100:>12.2f}  {per_seed:<20}{fps:>9.2f}{lost:>6}{keyframes:>5}"
-              f"{o3d_ate * 100:>12.2f}{o3d_fps:>9.2f}")
+        loop_counts = "/".join(str(count) for count in loops)
+        print(f"{name:<20}{frames:>7}{np.mean(ates) * 100:>12.2f}  {per_seed:<22}{rpe * 100:>7.2f}{fps:>8.2f}"
+              f"{lost:>5}{loop_counts:>8}{keyframes:>5}{o3d_ate * 100:>12.2f}{o3d_fps:>9.2f}")
 
 
 if __name__ == "__main__":

@@ -205,6 +205,16 @@ class ObjectsConfig:
 
 
 @dataclass
+class LoopClosureConfig:
+    """Loop closure of the static map (place recognition, verification, pose graph)."""
+
+    enabled: bool = True
+    min_keyframe_gap: int = 10
+    candidates: int = 3
+    min_inliers: int = 50
+
+
+@dataclass
 class VladConfig:
     """Segment appearance descriptors for segment-based registration."""
 
@@ -232,6 +242,7 @@ class BundleAdjustmentConfig:
     plane_offset_sigma: float = 0.01
     min_shared_landmarks: int = 3
     estimate_noise: bool = True
+    final_global: bool = True
 
 
 @dataclass
@@ -258,6 +269,7 @@ class Config:
     objects: ObjectsConfig = field(default_factory=ObjectsConfig)
     vlad: VladConfig = field(default_factory=VladConfig)
     bundle_adjustment: BundleAdjustmentConfig = field(default_factory=BundleAdjustmentConfig)
+    loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
     def to_dict(self) -> dict[str, Any]:
@@ -358,6 +370,9 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "objects.free_space_min_segment_pixels": (lambda v: v >= 1, "at least 1"),
     "objects.free_space_share": (lambda v: 0.5 <= v <= 1, "in [0.5, 1]"),
     "vlad.vocabulary_size": (lambda v: v >= 2, "at least 2"),
+    "loop_closure.min_keyframe_gap": (lambda v: v >= 1, "at least 1"),
+    "loop_closure.candidates": (lambda v: v >= 1, "at least 1"),
+    "loop_closure.min_inliers": (lambda v: v >= 3, "at least 3"),
     "vlad.max_pairs": (lambda v: v >= 1, "at least 1"),
     "vlad.min_segment_points": (lambda v: v >= 3, "at least 3"),
     "vlad.training_descriptors": (lambda v: v >= 100, "at least 100"),

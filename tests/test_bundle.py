@@ -654,3 +654,40 @@ def test_the_static_maps_estimate_carries_to_its_next_run_and_to_object_maps(mon
     assert second.passes <= first.passes
     assert np.array_equal(calls[2][1], second.noise_components)
     assert object_result.passes == 1 and np.array_equal(object_result.noise_components, second.noise_components)
+
+
+
+@pytest.mark.parametrize("seed", [21, 22])
+def test_a_run_over_the_whole_map_corrects_every_keyframe(seed):
+    """``bundle_adjustment.final_global``: after the last frame one run frees all keyframes but
+    the first. On a map whose keyframes are all 2 cm / 1 degree off, it brings every one near
+    the truth, where a windowed run corrects only its window (and the keyframes that see the
+    same landmarks stay fixed)."""
+    rng = np.random.default_rng(seed)
+    scene = make_scene(rng, keyframes=12, landmarks=600, arc_degrees=60.0)
+    whole = build_map(scene, rng)
+    windowed = copy.deepcopy(whole)
+    first = whole.keyframes[0].T_map_cam.copy()
+    config = BundleAdjustmentConfig(enabled=True, window_keyframes=4, asynchronous=False)
+    with BundleScheduler(config, NOISE, K) as scheduler:
+        result = scheduler.run_global(whole)
+        assert scheduler.maybe_start(windowed, window=config.window_keyframes)
+        scheduler.finish(windowed)
+    assert result is not None and result.success
+    assert result.keyframes_optimised == 11 and result.keyframes_fixed == 1
+    assert np.array_equal(whole.keyframes[0].T_map_cam, first)
+    translation, rotation = pose_errors(whole, scene)
+    assert translation.max() < 0.004 and rotation.max() < 0.1
+    translation_windowed, _ = pose_errors(windowed, scene)
+    assert np.all(translation_windowed[1:8] > 0.01)  # outside the window: as they were (2 cm)
+    assert landmark_rmse(whole, scene) < landmark_rmse(windowed, scene)
+
+
+def test_a_run_over_the_whole_map_is_skipped_when_bundle_adjustment_is_off():
+    rng = np.random.default_rng(21)
+    the_map = build_map(make_scene(rng, keyframes=4, landmarks=200), rng)
+    before = copy.deepcopy(the_map)
+    config = BundleAdjustmentConfig(enabled=False, asynchronous=False)
+    with BundleScheduler(config, NOISE, K) as scheduler:
+        assert scheduler.run_global(the_map) is None
+    assert_same_state(before, the_map)

@@ -13,6 +13,7 @@ from jsr.io.dataset import open_sequence
 from jsr.io.trajectory import read_tum_trajectory
 from jsr.io.writers import read_csv
 from jsr.pipeline.bundle_noise import BOUNDS, GROUPS
+from jsr.pipeline.reconstruct import Reconstructor
 from jsr.pipeline.run import run_reconstruction
 
 
@@ -65,6 +66,37 @@ def test_summary_records_the_estimated_sensor_noise(synth_sequence, tmp_path, es
     assert all(BOUNDS[0] <= value <= BOUNDS[1] for value in noise.values())
     # the synthetic sequence's keypoints are far more precise than the configured 1 px
     assert noise["reprojection"] < 0.5
+
+
+
+@pytest.mark.parametrize("final_global", [True, False])
+def test_finish_adjusts_the_whole_static_map_once(synth_sequence, final_global):
+    """``bundle_adjustment.final_global``: ``finish`` ends with one run over all the static
+    map's keyframes but the first; the camera trajectory follows it."""
+    sequence = open_sequence(synth_sequence, max_frames=12)
+    config = load_config(None, ["bundle_adjustment.every_keyframes=2", "bundle_adjustment.window_keyframes=2",
+                                f"bundle_adjustment.final_global={final_global}"])
+    reconstructor = Reconstructor(config, sequence.intrinsics)
+    try:
+        for index in range(len(sequence)):
+            reconstructor.process(sequence[index])
+        poses_before = [reconstructor.current_pose(report) for report in reconstructor.reports]
+        windowed_runs = len(reconstructor.state.bundle.results)
+        reconstructor.finish()
+    finally:
+        reconstructor.close()
+    keyframes = len(reconstructor.static_map.keyframes)
+    results = reconstructor.state.bundle.results
+    assert keyframes > config.bundle_adjustment.window_keyframes + 1
+    if not final_global:
+        assert all(r.keyframes_optimised < keyframes - 1 for r in results)
+        return
+    assert len(results) >= windowed_runs + 1
+    last = results[-1]
+    assert last.success and last.keyframes_optimised == keyframes - 1 and last.keyframes_fixed == 1
+    poses_after = [reconstructor.current_pose(report) for report in reconstructor.reports]
+    moved = [np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in zip(poses_after, poses_before)]
+    assert 0.0 < max(moved) < 0.01  # a correction of the windows' leftovers, not a new trajectory
 
 
 def test_summary_records_the_dependency_versions(synth_sequence, tmp_path):

@@ -105,6 +105,29 @@ class BundleScheduler:
         """Wait for and apply the job of ``map``, if any."""
         return self.apply_finished(map, wait=True)
 
+    def run_global(self, map: Map) -> BundleResult | None:
+        """Solve all of ``map``'s keyframes at once (the first held fixed), in the caller's
+        thread, and apply the result; None if bundle adjustment is off or there is nothing
+        to optimise. Windowed runs correct each window against the fixed keyframes before it,
+        so the drift they leave behind stays; one run over the whole map spreads it. It
+        starts from (and, for the static map, re-estimates) the sensor's noise."""
+        if not self.config.enabled:
+            return None
+        self.finish(map)
+        problem = BundleProblem.from_map(map, self.config, self.noise, self.intrinsics_matrix,
+                                         window=len(map.keyframes))
+        if problem is None:
+            return None
+        solution = problem.solve(self.config, self.noise_components, self._estimates(map))
+        apply_solution(map, solution)
+        if solution.result.success and self._estimates(map):
+            self.noise_components = solution.result.noise_components
+        self.results.append(solution.result)
+        logger.info("%s: bundle adjustment over all %d keyframes: cost %.4g -> %.4g in %.1f s",
+                    map.name, len(map.keyframes), solution.result.initial_cost, solution.result.final_cost,
+                    solution.result.seconds)
+        return solution.result
+
     def _estimates(self, map: Map) -> bool:
         """Whether runs of ``map`` estimate the sensor's noise components: those of the static
         map, with ``estimate_noise``. An object map's windows hold a few hundred observations

@@ -6,12 +6,14 @@ registration succeeded takes a keyframe of its own measurements when its view is
 from __future__ import annotations
 
 import logging
+import time
 
 import numpy as np
 
 from jsr.config import Config
 from jsr.pipeline.association import (MatchedFrame, inlier_landmarks, inlier_plane_landmarks, sample_colors)
 from jsr.pipeline.classify import segment_of_planes
+from jsr.pipeline.loop_closure import find_loop
 from jsr.pipeline.maps import Candidacy, Keyframe, ObjectMap
 from jsr.pipeline.measurements import FrameMeasurements, PointMeasurements
 from jsr.pipeline.object_registration import ObjectTrackingResult
@@ -140,14 +142,11 @@ def ensure_vocabulary(state: SceneState, measurements: FrameMeasurements) -> Non
     """Train the VLAD vocabulary once, on the static map's descriptors (and this frame's)."""
     if state.vocabulary is not None:
         return
-    config = state.config.vlad
     descriptors = np.concatenate([state.static_map.points.descriptors, measurements.points.descriptors])
     rng = np.random.default_rng(state.config.seed)  # its own stream: RANSAC draws stay unchanged
-    if len(descriptors) > config.training_descriptors:
-        descriptors = descriptors[np.sort(rng.choice(len(descriptors), config.training_descriptors, replace=False))]
-    state.vocabulary = VladVocabulary.train(descriptors, config.vocabulary_size, rng, config.kmeans_iterations,
-                                           config.normalization)
-    logger.info("VLAD vocabulary of %d words trained on %d descriptors", state.vocabulary.size, len(descriptors))
+    state.vocabulary = VladVocabulary.train_on_sample(descriptors, state.config.vlad, rng)
+    logger.info("VLAD vocabulary of %d words trained on %d descriptors", state.vocabulary.size,
+                min(len(descriptors), state.config.vlad.training_descriptors))
 
 
 def update_static(state: SceneState, ctx: FrameContext) -> None:
@@ -184,6 +183,9 @@ def update_static(state: SceneState, ctx: FrameContext) -> None:
     )
     report.new_keyframe = True
     remember_depth(state, ctx)
+    started = time.perf_counter()
+    state.places.pending = find_loop(state.places, state.static_map, measurements, state.config, state.streams.loops)
+    ctx.timings["loop_detection"] = (time.perf_counter() - started) * 1000.0
     state.bundle.maybe_start(state.static_map)
 
 

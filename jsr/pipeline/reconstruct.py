@@ -36,6 +36,7 @@ from jsr.io.camera import CameraIntrinsics
 from jsr.io.dataset import Frame
 from jsr.pipeline.bundle_noise import GROUPS
 from jsr.pipeline.bundle_scheduler import BundleScheduler
+from jsr.pipeline.loop_closure import LoopClosure, close_loop
 from jsr.pipeline.classify import classify_frame
 from jsr.pipeline.confirmation import drop_undecided, weigh_maps
 from jsr.pipeline.free_space import FreeSpaceViews
@@ -134,6 +135,11 @@ class Reconstructor:
         return None if components is None else {name: float(v) for name, v in zip(GROUPS, components)}
 
     @property
+    def loops_closed(self) -> list[LoopClosure]:
+        """The static map's loops closed so far (:mod:`~jsr.pipeline.loop_closure`)."""
+        return list(self.state.places.closed)
+
+    @property
     def objects_non_rigid(self) -> list[int]:
         """Ids of the candidates no rigid motion explained (their regions are dynamic)."""
         return self.state.non_rigid
@@ -159,6 +165,11 @@ class Reconstructor:
         ctx = FrameContext(frame, measurements, report, timings=dict(measurements.timings_ms))
         with _timed(ctx, "bundle_wait"):
             self._apply_bundle_adjustments()
+        with _timed(ctx, "loop_closure"):
+            self._close_pending_loop()
+        if state.reports and state.camera.last_pose is not None and state.reports[-1].tracked:
+            # bundle adjustment or a loop may have moved the keyframe the last pose hangs from
+            state.camera.last_pose = self.current_pose(state.reports[-1])
         if not state.static_map.keyframes:
             initialise(state, ctx, self._init_object_mask)  # the world frame, the static map (and object 1)
         else:
@@ -201,9 +212,15 @@ class Reconstructor:
         state = self.state
         for map_ in state.maps:
             state.bundle.apply_finished(map_, wait=True)
-        if state.reports and state.camera.last_pose is not None and state.reports[-1].tracked:
-            # bundle adjustment may have moved the keyframe the last pose hangs from
-            state.camera.last_pose = self.current_pose(state.reports[-1])
+
+    def _close_pending_loop(self) -> None:
+        """Apply the loop found at the last static keyframe, if any
+        (:func:`~jsr.pipeline.loop_closure.close_loop`): after bundle adjustment's result, so
+        that no run is in flight on the poses it moves."""
+        places = self.state.places
+        if places.pending is not None:
+            places.closed.append(close_loop(self.state.static_map, places.pending))
+            places.pending = None
 
     def _finish_report(self, ctx: FrameContext, started: float) -> None:
         """The frame's pose anchor, ownership mask and map sizes into its report; the report
@@ -254,11 +271,15 @@ class Reconstructor:
         return current_pose(self.state.static_map, report)
 
     def finish(self) -> None:
-        """Drop the candidates still undecided (dissolved), then wait for and apply the last
-        bundle adjustments."""
+        """Drop the candidates still undecided (dissolved), wait for and apply the last
+        bundle adjustments, then (``bundle_adjustment.final_global``) adjust the whole static map
+        once."""
         drop_undecided(self.state)
         for map_ in self.state.maps:
             self.state.bundle.finish(map_)
+        self._close_pending_loop()
+        if self.config.bundle_adjustment.final_global:
+            self.state.bundle.run_global(self.state.static_map)
 
     def close(self) -> None:
         """Stop the worker threads (front-end and bundle adjustment); the maps stay usable."""

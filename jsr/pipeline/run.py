@@ -192,6 +192,7 @@ class ResultsWriter:
                 "per_frame": [r.dynamic_pixels for r in reports],
             },
             "sensor_noise": reconstructor.sensor_noise,
+            "loops_closed": [loop.summary() for loop in reconstructor.loops_closed],
             "timings": timing_summary,
             "platform": platform.platform(),
             "dependencies": dependency_versions(),

@@ -24,6 +24,7 @@ from jsr.io.dataset import Frame
 from jsr.pipeline.association import MatchedFrame, inlier_mask
 from jsr.pipeline.bundle_scheduler import BundleScheduler
 from jsr.pipeline.free_space import FreeSpaceViews
+from jsr.pipeline.loop_closure import PlaceIndex
 from jsr.pipeline.maps import Map, ObjectMap
 from jsr.pipeline.measurements import FrameMeasurements
 from jsr.pipeline.object_registration import ObjectRegistrar, ObjectTrackingResult
@@ -159,16 +160,18 @@ class RandomStreams:
     (``detection.partial_outlier_ratio``), which runs on many static segments of real data and
     finds nothing; on a stream of its own it leaves the object registrations' samples as they
     were (on kitchen_box120 those alone moved the box's rotation error between 0.8 and 1.25
-    degrees).
+    degrees). ``loops``: the verification of loop closures (:mod:`~jsr.pipeline.loop_closure`).
     """
 
     static: np.random.Generator
     objects: np.random.Generator
     turn_test: np.random.Generator
+    loops: np.random.Generator
 
     @classmethod
     def from_seed(cls, seed: int) -> "RandomStreams":
-        return cls(np.random.default_rng(seed), np.random.default_rng([seed, 1]), np.random.default_rng([seed, 2]))
+        return cls(np.random.default_rng(seed), np.random.default_rng([seed, 1]), np.random.default_rng([seed, 2]),
+                   np.random.default_rng([seed, 3]))
 
 
 @dataclass
@@ -179,7 +182,8 @@ class SceneState:
     (the dense models fuse only the pixels each map received). ``surfaces``: surface samples
     of the object keyframes (an object's surface model for shape-based re-identification, and
     its extent). ``free_space``: subsampled depth of the latest static keyframes (free-space
-    tests). ``merged_into``: object id -> the id of the map it was merged into.
+    tests). ``merged_into``: object id -> the id of the map it was merged into. ``places``: the
+    static keyframes' appearance, for loop closure.
     ``focal_length``: for image-space refinement (``ransac.refinement: image``), else None.
     """
 
@@ -203,6 +207,7 @@ class SceneState:
     next_object_id: int = 1  # ids are never reused, also after merges
     vocabulary: VladVocabulary | None = None
     segment_index: SegmentIndex = field(default_factory=SegmentIndex)
+    places: PlaceIndex = field(default_factory=PlaceIndex)
 
     @property
     def maps(self) -> list[Map]:

@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from jsr.pipeline.association import match_frame_to_map
+from jsr.pipeline.loop_closure import recognised_landmarks
 from jsr.pipeline.maps import Map
 from jsr.pipeline.registration import register
 from jsr.pipeline.measurements import FrameMeasurements
@@ -36,16 +37,20 @@ def register_static(state: SceneState, ctx: FrameContext) -> None:
     predicted = None if relocalise else predicted_pose(camera)
     # Tracking matches the landmarks of the last N keyframes. After a loss the frame is
     # relocalised: first against those same keyframes without a pose prior (the camera is
-    # usually still near where it was lost), then against the whole map. The whole map alone
-    # is not enough: its many near-duplicate landmarks make Lowe's ratio test reject most
-    # matches.
+    # usually still near where it was lost), then against the keyframes that look most like
+    # it (place recognition), then against the whole map. The whole map alone is not enough:
+    # its many near-duplicate landmarks make Lowe's ratio test reject most matches.
     usable = static_candidates(state, measurements)
-    attempts = [config.matching.recent_keyframes]
-    if relocalise and len(state.static_map.keyframes) > config.matching.recent_keyframes:
-        attempts.append(None)
+    static_map = state.static_map
+    attempts = [static_map.recent_point_landmarks(config.matching.recent_keyframes)]
+    if relocalise and len(static_map.keyframes) > config.matching.recent_keyframes:
+        descriptors = measurements.points.descriptors if usable is None else measurements.points.descriptors[usable]
+        recognised = recognised_landmarks(state.places, static_map, descriptors, config)
+        if recognised is not None:
+            attempts.append(recognised)
+        attempts.append(static_map.recent_point_landmarks(None))
     matching_ms = registration_ms = 0.0
-    for keyframe_count in attempts:
-        landmark_ids = state.static_map.recent_point_landmarks(keyframe_count)
+    for landmark_ids in attempts:
         tic = time.perf_counter()
         matched = match_frame_to_map(measurements, state.static_map, landmark_ids, predicted, config,
                                      state.focal_length, point_measurements=usable)

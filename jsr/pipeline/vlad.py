@@ -174,6 +174,15 @@ class VladVocabulary:
         centres, _ = kmeans(data, k, rng, iterations=iterations)
         return cls(centres=centres.astype(np.float32), normalization=normalization)
 
+    @classmethod
+    def train_on_sample(cls, descriptors: np.ndarray, settings, rng: np.random.Generator) -> "VladVocabulary":
+        """:meth:`train` with the ``vlad`` section of the config (``settings``: size,
+        iterations, normalisation) on at most ``settings.training_descriptors`` of
+        ``descriptors`` ``(N, 128)``, drawn with ``rng``."""
+        if len(descriptors) > settings.training_descriptors:
+            descriptors = descriptors[np.sort(rng.choice(len(descriptors), settings.training_descriptors, replace=False))]
+        return cls.train(descriptors, settings.vocabulary_size, rng, settings.kmeans_iterations, settings.normalization)
+
     def assign(self, descriptors: np.ndarray) -> np.ndarray:
         """``(M,)`` index of the nearest word of every descriptor."""
         return nearest_centres(_as_descriptors(descriptors), self.centres)[0]
