@@ -9,24 +9,28 @@ compared with the old ones:
 1. **Recognition** (:class:`PlaceIndex`): every static keyframe gets a VLAD of its landmarks'
    descriptors, on a vocabulary of its own trained on the static map (the object
    vocabulary is trained when the first object appears, and stays independent of this).
-   Candidates are the keyframes at least ``loop_closure.min_keyframe_gap`` older that are
-   not already linked to the new one by common landmarks, and look at least as much like it
-   as its own recent neighbours do (ORB-SLAM's relative threshold: a scene's appearance varies
-   too much for an absolute one). The ``loop_closure.candidates`` most similar are verified.
-2. **Verification**: the new keyframe's static measurements are matched by descriptor to the
-   landmarks of the candidate and its neighbouring keyframes, and registered by the mixed
-   point/plane RANSAC of tracking (on a random stream of its own, so that tracking's draws do
-   not depend on it). At least ``loop_closure.min_inliers`` inliers are needed (as a static
-   keyframe needs ``keyframes.static_min_inliers``).
+   Candidates are the keyframes at least ``loop_closure.min_keyframe_gap`` older that share
+   fewer than ``loop_closure.min_inliers / 2`` landmarks with the new one (not linked yet),
+   and look at least as much like it as its own recent neighbours do (ORB-SLAM's relative
+   threshold: a scene's appearance varies too much for an absolute one). The
+   ``loop_closure.candidates`` most similar are verified.
+2. **Verification**: the new keyframe's static point measurements are matched by descriptor
+   to the landmarks of the candidate and its old neighbouring keyframes (less those the new
+   keyframe observes), and registered by the RANSAC of tracking (on a random stream of its
+   own, so that tracking's draws do not depend on it). At least ``loop_closure.min_inliers``
+   inliers are needed (as a static keyframe needs ``keyframes.static_min_inliers``).
 3. **Correction**, applied at the start of the next frame (after bundle adjustment's result,
    before tracking; as bundle adjustment, at a fixed point so that runs stay reproducible):
    the keyframe pose graph (:mod:`~jsr.pipeline.pose_graph`) spreads the disagreement
    between the loop and the chain of keyframes over the chain; landmarks move with the
-   first keyframe that observed them; the new keyframe's landmarks matched as inliers are
-   fused into the old ones they duplicate, so that bundle adjustment (the next window, which
-   holds the old keyframes observing them fixed, and the run over the whole map at the end,
-   ``bundle_adjustment.final_global``) keeps the loop closed. Frames follow their keyframes
-   (``current_pose``), and object trajectories follow the camera.
+   first keyframe that observed them; the new keyframe's point landmarks matched as inliers
+   are fused into the old ones they duplicate (planes mapped twice stay two), so that bundle
+   adjustment (the next window, which holds the old keyframes observing them fixed, and the
+   run over the whole map at the end, ``bundle_adjustment.final_global``) keeps the loop
+   closed; the loops closed before stay edges of the pose graph. Frames follow their
+   keyframes (``current_pose``), object trajectories follow the camera, and the world poses
+   kept from the loop's frame (the previous frame's, the objects' last) move with its
+   keyframe.
 
 The same recognition serves relocalisation after a loss (:func:`recognised_landmarks`): the
 frame is matched to the landmarks around the keyframes that look most like it, before the
@@ -57,8 +61,8 @@ landmarks are a view's worth, its neighbours' cover what the new keyframe sees a
 
 TRAINING_DESCRIPTORS = 4000
 """Descriptors the place vocabulary is trained on, at most: it is trained inside a frame (the
-first time a loop is looked for), and k-means on 20000 descriptors took that frame 1.9 s
-(0.2 s on 4000); 64 words ranking a few hundred keyframes need no more."""
+first time a loop is looked for), and k-means of 64 words on 20000 descriptors takes 1.9 s,
+on 4000 about 0.2 s; 64 words ranking a few hundred keyframes need no more."""
 
 ODOMETRY_SIGMAS = (0.01, np.radians(1.0))
 """Sigmas (m, rad) of the relative pose of two consecutive keyframes in the pose graph, and of
@@ -121,6 +125,8 @@ def find_loop(index: PlaceIndex, static_map: Map, measurements: FrameMeasurement
         return None
     if index.vocabulary is None:
         index.vocabulary = _train_vocabulary(static_map, config)
+        if index.vocabulary is None:
+            return None
     index.encode_new(static_map)
     vlads = np.stack(index.vlads)
     similarity = vlads @ vlads[newest]  # VLADs are unit vectors: cosine similarity
@@ -135,7 +141,7 @@ def find_loop(index: PlaceIndex, static_map: Map, measurements: FrameMeasurement
         if len(shared) < settings.min_inliers // 2:  # not linked yet: a loop to close
             candidates.append(int(k))
     for k in candidates:
-        loop = _verify(static_map, newest, k, float(similarity[k]), measurements, config, rng)
+        loop = _verify(static_map, newest, k, last_old, float(similarity[k]), measurements, config, rng)
         if loop is not None:
             return loop
     return None
@@ -151,26 +157,35 @@ def recognised_landmarks(index: PlaceIndex, static_map: Map, descriptors: np.nda
     keyframes = static_map.keyframes
     if not config.loop_closure.enabled or len(keyframes) <= config.matching.recent_keyframes or not len(descriptors):
         return None
-    best = similar_keyframes(index, static_map, descriptors, config)[: config.loop_closure.candidates]
+    ranked = similar_keyframes(index, static_map, descriptors, config)
+    if ranked is None:
+        return None
+    best = ranked[: config.loop_closure.candidates]
     around = sorted({j for k in best for j in range(max(0, k - NEIGHBOURS), min(len(keyframes), k + NEIGHBOURS + 1))})
     ids = np.unique(np.concatenate([keyframes[j].point_landmarks for j in around]))
     return ids[static_map.points.active[ids]]
 
 
-def similar_keyframes(index: PlaceIndex, static_map: Map, descriptors: np.ndarray, config: Config) -> np.ndarray:
+def similar_keyframes(index: PlaceIndex, static_map: Map, descriptors: np.ndarray, config: Config
+                      ) -> np.ndarray | None:
     """``(K,)`` the static keyframes' indices, the most similar in appearance (VLAD cosine) to
-    ``descriptors`` ``(N, 128)`` first. Trains the place vocabulary if needed."""
+    ``descriptors`` ``(N, 128)`` first. Trains the place vocabulary if needed; None while the
+    static map has no landmark to train it on."""
     if index.vocabulary is None:
         index.vocabulary = _train_vocabulary(static_map, config)
+        if index.vocabulary is None:
+            return None
     index.encode_new(static_map)
     similarity = np.stack(index.vlads) @ index.vocabulary.encode(descriptors)
     return np.argsort(-similarity, kind="stable")
 
 
-def _train_vocabulary(static_map: Map, config: Config) -> VladVocabulary:
+def _train_vocabulary(static_map: Map, config: Config) -> VladVocabulary | None:
     """The place vocabulary, on the static map's landmarks (its own random stream: nothing
-    else's draws change)."""
+    else's draws change); None without any."""
     descriptors = static_map.points.descriptors[static_map.points.active]
+    if not len(descriptors):
+        return None
     settings = replace(config.vlad, training_descriptors=min(config.vlad.training_descriptors, TRAINING_DESCRIPTORS))
     vocabulary = VladVocabulary.train_on_sample(descriptors, settings, np.random.default_rng([config.seed, 4]))
     logger.debug("loop closure: place vocabulary of %d words trained on %d landmarks' descriptors",
@@ -178,16 +193,19 @@ def _train_vocabulary(static_map: Map, config: Config) -> VladVocabulary:
     return vocabulary
 
 
-def _verify(static_map: Map, newest: int, candidate: int, similarity: float, measurements: FrameMeasurements,
-            config: Config, rng: np.random.Generator) -> LoopClosure | None:
-    """Register the newest keyframe's measurements against the landmarks around ``candidate``."""
+def _verify(static_map: Map, newest: int, candidate: int, last_old: int, similarity: float,
+            measurements: FrameMeasurements, config: Config, rng: np.random.Generator) -> LoopClosure | None:
+    """Register the newest keyframe's measurements against the landmarks around ``candidate``
+    (its neighbours up to keyframe ``last_old``, less the landmarks the newest keyframe
+    observes: those would only confirm the pose it already has). Points only: planes are
+    matched by pose, and under the keyframe's own pose they would find the planes it just
+    made."""
     keyframes = static_map.keyframes
     keyframe = keyframes[newest]
-    around = keyframes[max(0, candidate - NEIGHBOURS): candidate + NEIGHBOURS + 1]
-    landmark_ids = np.unique(np.concatenate([kf.point_landmarks for kf in around]))
+    around = keyframes[max(0, candidate - NEIGHBOURS): min(candidate + NEIGHBOURS, last_old) + 1]
+    landmark_ids = np.setdiff1d(np.concatenate([kf.point_landmarks for kf in around]), keyframe.point_landmarks)
     landmark_ids = landmark_ids[static_map.points.active[landmark_ids]]
-    # planes are matched under a predicted pose: the keyframe's own, off by the drift only
-    matched = match_frame_to_map(measurements, static_map, landmark_ids, keyframe.T_map_cam, config,
+    matched = match_frame_to_map(measurements, static_map, landmark_ids, None, config,
                                  point_measurements=keyframe.point_measurements)
     result = register(matched.correspondences, config.ransac, config.noise, rng)
     if not result.success or result.num_inliers < config.loop_closure.min_inliers:
@@ -205,16 +223,21 @@ def _verify(static_map: Map, newest: int, candidate: int, similarity: float, mea
                        T_matched_keyframe, fused)
 
 
-def close_loop(static_map: Map, loop: LoopClosure) -> LoopClosure:
+def close_loop(static_map: Map, loop: LoopClosure, earlier: list[LoopClosure] = ()) -> tuple[LoopClosure, np.ndarray]:
     """Apply a verified loop to the static map: the pose graph's correction of the keyframes
-    (the first held fixed), the landmarks moved with the keyframe that first observed them,
-    and the duplicated landmarks fused. Returns the loop with the correction it made."""
+    (the first held fixed; the ``earlier`` loops stay edges of the graph, so that this one
+    does not open them again), the landmarks moved with the keyframe that first observed
+    them, and the duplicated point landmarks fused. Returns the loop with the correction it
+    made, and that correction of the new keyframe ``(4, 4)`` (world frame, applied on the
+    left): what poses kept in the world from the same frames (the camera's, the objects')
+    need too."""
     keyframes = static_map.keyframes
     before = static_map.keyframe_poses
     sigma_translation, sigma_rotation = ODOMETRY_SIGMAS
     edges = chain_edges(before, sigma_translation, sigma_rotation)
-    edges.append(PoseEdge(loop.matched_keyframe, loop.keyframe, loop.T_matched_keyframe, sigma_translation,
-                          sigma_rotation))
+    for closed in [*earlier, loop]:
+        edges.append(PoseEdge(closed.matched_keyframe, closed.keyframe, closed.T_matched_keyframe, sigma_translation,
+                              sigma_rotation))
     after = optimise_pose_graph(before, edges, fixed=0)
     corrections = after @ invert_transform(before)
     for keyframe, pose in zip(keyframes, after):
@@ -229,7 +252,7 @@ def close_loop(static_map: Map, loop: LoopClosure) -> LoopClosure:
     logger.info("frame %d: loop closed, keyframe %d sees the place of keyframe %d (%d inliers): moved %.1f cm / "
                 "%.2f deg, %d landmarks fused", loop.frame_index, loop.keyframe, loop.matched_keyframe, loop.inliers,
                 closed.correction_cm, closed.correction_degrees, len(fused))
-    return closed
+    return closed, moved
 
 
 def _first_observers(count: int, keyframe_landmarks: list[np.ndarray]) -> np.ndarray:
@@ -247,15 +270,14 @@ def _move_landmarks(static_map: Map, corrections: np.ndarray) -> None:
     first observed it (where it was made from)."""
     points, planes = static_map.points, static_map.planes
     point_anchor = _first_observers(len(points), [kf.point_landmarks for kf in static_map.keyframes])
+    ids = np.flatnonzero(point_anchor >= 0)
+    moved = corrections[point_anchor[ids]]
+    points.positions[ids] = np.einsum("nij,nj->ni", moved[:, :3, :3], points.positions[ids]) + moved[:, :3, 3]
     plane_anchor = _first_observers(len(planes), [kf.plane_landmarks for kf in static_map.keyframes])
-    for k, correction in enumerate(corrections):
-        ids = np.flatnonzero(point_anchor == k)
-        if len(ids):
-            points.positions[ids] = transform_points(correction, points.positions[ids])
+    for k in np.unique(plane_anchor[plane_anchor >= 0]):  # planes are few
         ids = np.flatnonzero(plane_anchor == k)
-        if len(ids):
-            planes.planes[ids] = transform_planes(correction, planes.planes[ids])
-            planes.centroids[ids] = transform_points(correction, planes.centroids[ids])
+        planes.planes[ids] = transform_planes(corrections[k], planes.planes[ids])
+        planes.centroids[ids] = transform_points(corrections[k], planes.centroids[ids])
 
 
 def _fuse_landmarks(static_map: Map, pairs: np.ndarray) -> np.ndarray:

@@ -217,10 +217,20 @@ class Reconstructor:
         """Apply the loop found at the last static keyframe, if any
         (:func:`~jsr.pipeline.loop_closure.close_loop`): after bundle adjustment's result, so
         that no run is in flight on the poses it moves."""
-        places = self.state.places
-        if places.pending is not None:
-            places.closed.append(close_loop(self.state.static_map, places.pending))
-            places.pending = None
+        state, places = self.state, self.state.places
+        if places.pending is None:
+            return
+        closed, correction = close_loop(state.static_map, places.pending, places.closed)
+        places.closed.append(closed)
+        places.pending = None
+        # world poses kept from the loop's frame (the last one) move with its keyframe: the
+        # previous frame's pose (bridging) and the objects' last poses (their prediction)
+        if state.camera.previous is not None:
+            measurements, pose = state.camera.previous
+            state.camera.previous = (measurements, correction @ pose)
+        for object_map in state.object_maps:
+            if object_map.last_T_w_o is not None:
+                object_map.last_T_w_o = correction @ object_map.last_T_w_o
 
     def _finish_report(self, ctx: FrameContext, started: float) -> None:
         """The frame's pose anchor, ownership mask and map sizes into its report; the report
@@ -272,8 +282,8 @@ class Reconstructor:
 
     def finish(self) -> None:
         """Drop the candidates still undecided (dissolved), wait for and apply the last
-        bundle adjustments, then (``bundle_adjustment.final_global``) adjust the whole static map
-        once."""
+        bundle adjustments, close the loop found at the last keyframe, then
+        (``bundle_adjustment.final_global``) adjust the whole static map once."""
         drop_undecided(self.state)
         for map_ in self.state.maps:
             self.state.bundle.finish(map_)

@@ -42,15 +42,16 @@ def register_static(state: SceneState, ctx: FrameContext) -> None:
     # its many near-duplicate landmarks make Lowe's ratio test reject most matches.
     usable = static_candidates(state, measurements)
     static_map = state.static_map
-    attempts = [static_map.recent_point_landmarks(config.matching.recent_keyframes)]
+    descriptors = measurements.points.descriptors if usable is None else measurements.points.descriptors[usable]
+    attempts = [lambda: static_map.recent_point_landmarks(config.matching.recent_keyframes)]
     if relocalise and len(static_map.keyframes) > config.matching.recent_keyframes:
-        descriptors = measurements.points.descriptors if usable is None else measurements.points.descriptors[usable]
-        recognised = recognised_landmarks(state.places, static_map, descriptors, config)
-        if recognised is not None:
-            attempts.append(recognised)
-        attempts.append(static_map.recent_point_landmarks(None))
+        attempts += [lambda: recognised_landmarks(state.places, static_map, descriptors, config),
+                     lambda: static_map.recent_point_landmarks(None)]
     matching_ms = registration_ms = 0.0
-    for landmark_ids in attempts:
+    for attempt in attempts:
+        landmark_ids = attempt()
+        if landmark_ids is None:  # no place recognition (loop closure off)
+            continue
         tic = time.perf_counter()
         matched = match_frame_to_map(measurements, state.static_map, landmark_ids, predicted, config,
                                      state.focal_length, point_measurements=usable)
