@@ -36,7 +36,7 @@ from jsr.config import load_config  # noqa: E402
 from jsr.evaluate.run import evaluate_run  # noqa: E402
 from jsr.evaluate.trajectory import absolute_trajectory_error, associate_poses  # noqa: E402
 from jsr.io.dataset import open_sequence  # noqa: E402
-from jsr.pipeline.run import run_reconstruction  # noqa: E402
+from jsr.pipeline.run import run_reconstruction, single_threaded_blas  # noqa: E402
 
 SHARED = REPO.parent / "shared" / "data"
 
@@ -148,8 +148,9 @@ def main() -> None:
             for seed in seeds:
                 out = temporary / f"run_{name}_seed{seed}"
                 out.mkdir()
-                summary = run_reconstruction(sequence, dataclasses.replace(config, seed=seed), out,
-                                             dense_models=False)
+                with single_threaded_blas():  # as jsr reconstruct runs (the same figures)
+                    summary = run_reconstruction(sequence, dataclasses.replace(config, seed=seed), out,
+                                                 dense_models=False)
                 camera = evaluate_run(out, path)["camera"]
                 ates.append(camera["ate"]["rmse"])
                 rpes.append(camera["rpe"]["translation_rmse"])
