@@ -94,7 +94,11 @@ class BundleScheduler:
         if future is None or (not wait and not future.done()):
             return None
         del self._pending[map]
-        solution: BundleSolution = future.result()  # re-raises an error of the worker
+        return self._apply(map, future.result())  # re-raises an error of the worker
+
+    def _apply(self, map: Map, solution: BundleSolution) -> BundleResult:
+        """Write ``solution`` into ``map``, keep the noise a static-map run estimated, and
+        record the result."""
         apply_solution(map, solution)
         if solution.result.success and self._estimates(map):
             self.noise_components = solution.result.noise_components
@@ -118,15 +122,10 @@ class BundleScheduler:
                                          window=len(map.keyframes))
         if problem is None:
             return None
-        solution = problem.solve(self.config, self.noise_components, self._estimates(map))
-        apply_solution(map, solution)
-        if solution.result.success and self._estimates(map):
-            self.noise_components = solution.result.noise_components
-        self.results.append(solution.result)
+        result = self._apply(map, problem.solve(self.config, self.noise_components, self._estimates(map)))
         logger.info("%s: bundle adjustment over all %d keyframes: cost %.4g -> %.4g in %.1f s",
-                    map.name, len(map.keyframes), solution.result.initial_cost, solution.result.final_cost,
-                    solution.result.seconds)
-        return solution.result
+                    map.name, len(map.keyframes), result.initial_cost, result.final_cost, result.seconds)
+        return result
 
     def _estimates(self, map: Map) -> bool:
         """Whether runs of ``map`` estimate the sensor's noise components: those of the static

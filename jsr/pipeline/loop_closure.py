@@ -107,10 +107,17 @@ class PlaceIndex:
     pending: LoopClosure | None = None
     closed: list[LoopClosure] = field(default_factory=list)
 
-    def encode_new(self, static_map: Map) -> None:
-        """VLADs of the keyframes added since the last call."""
+    def prepare(self, static_map: Map, config: Config) -> bool:
+        """Train the vocabulary if it is not yet (:func:`_train_vocabulary`) and encode the
+        keyframes added since the last call; False while the static map has no landmark to
+        train it on."""
+        if self.vocabulary is None:
+            self.vocabulary = _train_vocabulary(static_map, config)
+            if self.vocabulary is None:
+                return False
         for keyframe in static_map.keyframes[len(self.vlads):]:
             self.vlads.append(self.vocabulary.encode(static_map.points.descriptors[keyframe.point_landmarks]))
+        return True
 
 
 def find_loop(index: PlaceIndex, static_map: Map, measurements: FrameMeasurements, config: Config,
@@ -121,13 +128,8 @@ def find_loop(index: PlaceIndex, static_map: Map, measurements: FrameMeasurement
     keyframes = static_map.keyframes
     newest = len(keyframes) - 1
     last_old = newest - settings.min_keyframe_gap
-    if not settings.enabled or last_old < 0:
+    if not settings.enabled or last_old < 0 or not index.prepare(static_map, config):
         return None
-    if index.vocabulary is None:
-        index.vocabulary = _train_vocabulary(static_map, config)
-        if index.vocabulary is None:
-            return None
-    index.encode_new(static_map)
     vlads = np.stack(index.vlads)
     similarity = vlads @ vlads[newest]  # VLADs are unit vectors: cosine similarity
     neighbours = range(max(0, newest - config.matching.recent_keyframes), newest)
@@ -171,11 +173,8 @@ def similar_keyframes(index: PlaceIndex, static_map: Map, descriptors: np.ndarra
     """``(K,)`` the static keyframes' indices, the most similar in appearance (VLAD cosine) to
     ``descriptors`` ``(N, 128)`` first. Trains the place vocabulary if needed; None while the
     static map has no landmark to train it on."""
-    if index.vocabulary is None:
-        index.vocabulary = _train_vocabulary(static_map, config)
-        if index.vocabulary is None:
-            return None
-    index.encode_new(static_map)
+    if not index.prepare(static_map, config):
+        return None
     similarity = np.stack(index.vlads) @ index.vocabulary.encode(descriptors)
     return np.argsort(-similarity, kind="stable")
 

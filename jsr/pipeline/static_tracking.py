@@ -41,11 +41,11 @@ def register_static(state: SceneState, ctx: FrameContext) -> None:
     # it (place recognition), then against the whole map. The whole map alone is not enough:
     # its many near-duplicate landmarks make Lowe's ratio test reject most matches.
     usable = static_candidates(state, measurements)
-    static_map = state.static_map
-    descriptors = measurements.points.descriptors if usable is None else measurements.points.descriptors[usable]
+    static_map, descriptors = state.static_map, measurements.points.descriptors
     attempts = [lambda: static_map.recent_point_landmarks(config.matching.recent_keyframes)]
     if relocalise and len(static_map.keyframes) > config.matching.recent_keyframes:
-        attempts += [lambda: recognised_landmarks(state.places, static_map, descriptors, config),
+        usable_descriptors = descriptors if usable is None else descriptors[usable]
+        attempts += [lambda: recognised_landmarks(state.places, static_map, usable_descriptors, config),
                      lambda: static_map.recent_point_landmarks(None)]
     matching_ms = registration_ms = 0.0
     for attempt in attempts:
