@@ -205,6 +205,22 @@ class ObjectsConfig:
 
 
 @dataclass
+class DenseConfig:
+    """The dense geometric term of static tracking (frame depth against keyframe depth)."""
+
+    enabled: bool = False
+    carry_below_inliers: int = 0
+    refine: bool = False
+    stride: int = 8
+    keyframes: int = 3
+    max_distance: float = 0.15
+    gate_sigmas: float = 5.0
+    iterations: int = 5
+    min_overlap: float = 0.5
+    max_pose_sigma: float = 0.01
+
+
+@dataclass
 class LoopClosureConfig:
     """Loop closure of the static map (place recognition, verification, pose graph)."""
 
@@ -269,6 +285,7 @@ class Config:
     objects: ObjectsConfig = field(default_factory=ObjectsConfig)
     vlad: VladConfig = field(default_factory=VladConfig)
     bundle_adjustment: BundleAdjustmentConfig = field(default_factory=BundleAdjustmentConfig)
+    dense: DenseConfig = field(default_factory=DenseConfig)
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
@@ -375,6 +392,14 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "vlad.training_descriptors": (lambda v: v >= 100, "at least 100"),
     "vlad.kmeans_iterations": (lambda v: v >= 1, "at least 1"),
     "vlad.candidate_segments": (lambda v: v >= 1, "at least 1"),
+    "dense.carry_below_inliers": (lambda v: v >= 0, "at least 0 (0: only frames whose features fail)"),
+    "dense.stride": (lambda v: v >= 1, "at least 1"),
+    "dense.keyframes": (lambda v: v >= 1, "at least 1"),
+    "dense.max_distance": (lambda v: v > 0, "positive"),
+    "dense.gate_sigmas": (lambda v: v > 0, "positive"),
+    "dense.iterations": (lambda v: v >= 1, "at least 1"),
+    "dense.min_overlap": (lambda v: 0 < v <= 1, "in (0, 1]"),
+    "dense.max_pose_sigma": (lambda v: v > 0, "positive"),
     "loop_closure.min_keyframe_gap": (lambda v: v >= 1, "at least 1"),
     "loop_closure.candidates": (lambda v: v >= 1, "at least 1"),
     "loop_closure.min_inliers": (lambda v: v >= 3, "at least 3"),

@@ -25,8 +25,10 @@ def run_summary(summary: dict, out_dir: Path) -> list:
     for item in summary.get("objects", []):
         shown.append(f"object {item['id']}: detected at frame {item['created_at_frame']}, "
                      f"tracked in {item['frames_tracked']} frames")
+    by_depth = summary.get("frames_by_depth", 0)
+    carried = f", {by_depth} placed by their depth" if by_depth else ""
     shown.append(f"tracked {summary['frames_tracked']} of {summary['frames_processed']} frames "
-                 f"({summary['frames_lost']} lost, {summary['relocalisations']} relocalisations); results in "
+                 f"({summary['frames_lost']} lost, {summary['relocalisations']} relocalisations{carried}); results in "
                  f"{escape(str(out_dir))}")
     return shown
 

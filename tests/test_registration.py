@@ -390,7 +390,7 @@ def _image_space_setup(seed: int):
 @pytest.mark.parametrize("seed", [0, 1])
 def test_image_space_jacobian_matches_finite_differences(seed: int) -> None:
     problem, masks, start, truth, prior_sigmas = _image_space_setup(seed)
-    linearised = pose_refinement._image_space_terms(problem, start, masks, FX, truth, prior_sigmas)
+    linearised = pose_refinement.image_space_terms(problem, start, masks, FX, truth, prior_sigmas)
     # 5 degrees from the prior: its rotation residual's Jacobian differs from the identity
     rotation = Rotation.from_rotvec([0.0, 0.0, np.deg2rad(5.0)]).as_matrix() @ start[:3, :3]
     translation = start[:3, 3]
@@ -416,7 +416,7 @@ def test_image_space_refinement_reaches_the_huber_minimum(seed: int) -> None:
     problem, masks, start, truth, prior_sigmas = _image_space_setup(seed)
     for prior in (None, truth):
         refined = pose_refinement.refine_pose_image_space(problem, start, masks, FX, prior, prior_sigmas)
-        linearised = pose_refinement._image_space_terms(problem, start, masks, FX, prior, prior_sigmas)
+        linearised = pose_refinement.image_space_terms(problem, start, masks, FX, prior, prior_sigmas)
 
         def residuals(x: np.ndarray) -> np.ndarray:
             return linearised(Rotation.from_rotvec(x[:3]).as_matrix() @ start[:3, :3], start[:3, 3] + x[3:])[0]

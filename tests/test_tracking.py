@@ -97,3 +97,73 @@ def test_no_static_keyframe_from_a_poorly_supported_pose(static_sequence):
     gated, gated_reports = track(sequence, ["keyframes.static_min_inliers=100000"])
     assert len(gated.static_map.keyframes) == 1 < len(reconstructor.static_map.keyframes)
     assert all(r.tracked and not r.new_keyframe for r in gated_reports[1:])
+
+
+def test_depth_carries_frames_whose_features_fail(static_sequence, tmp_path):
+    """dense: frames whose colour is blank (no feature at all) but whose depth is sharp are
+    placed by their depth alone from the predicted pose; without the dense term they are lost."""
+    import shutil
+
+    root = tmp_path / "colourless"
+    shutil.copytree(static_sequence, root)
+    sequence = open_sequence(root)
+    blanked = range(12, 15)
+    for index in blanked:
+        cv2.imwrite(str(sequence.entries[index].color_path), np.zeros((240, 320, 3), np.uint8))
+    _, without_depth = track(sequence)
+    assert not any(without_depth[i].tracked for i in blanked)
+    reconstructor, reports = track(sequence, ["dense.enabled=true"])
+    assert all(reports[i].tracked and reports[i].by_depth for i in blanked)
+    assert not any(r.by_depth for i, r in enumerate(reports) if i not in blanked)
+    assert all(r.tracked for r in reports)
+    truth_times, truth_poses = sequence.groundtruth
+
+    def truth_at(report):
+        return truth_poses[np.argmin(np.abs(truth_times - report.timestamp))]
+
+    for index in blanked:
+        relative_truth = np.linalg.inv(truth_at(reports[0])) @ truth_at(reports[index])
+        assert np.linalg.norm(reports[index].T_w_c[:3, 3] - relative_truth[:3, 3]) < 0.01
+    assert ate(reports, sequence) < 0.01
+
+
+def test_depth_refinement_keeps_the_camera_on_depth_that_fits_its_noise_model(static_sequence):
+    """dense.refine: on depth whose noise is the model's (synthetic), refining every frame on
+    its depth beside the features moves the poses and keeps the camera within a centimetre."""
+    sequence = open_sequence(static_sequence, max_frames=20)
+    _, features_only = track(sequence)
+    _, refined = track(sequence, ["dense.enabled=true", "dense.refine=true"])
+    assert all(r.tracked and not r.by_depth for r in refined)
+    moved = [np.linalg.norm(a.T_w_c[:3, 3] - b.T_w_c[:3, 3]) for a, b in zip(features_only[1:], refined[1:])]
+    assert max(moved) > 1e-4  # the depth took part
+    assert ate(refined, sequence) < 0.01
+
+
+def test_dense_samples_keep_away_from_what_moved_in_the_previous_frame():
+    from types import SimpleNamespace
+
+    from jsr.pipeline.static_tracking import static_pixels
+
+    config = load_config(None)
+    state = SimpleNamespace(config=config, memory=SimpleNamespace(previous_mask=None))
+    assert static_pixels(state) is None
+    state.memory.previous_mask = np.zeros((480, 640), np.uint8)
+    assert static_pixels(state) is None  # all static: every pixel may be aligned
+    state.memory.previous_mask[200:240, 300:340] = 255  # dynamic (a person) ...
+    state.memory.previous_mask[100:110, 100:110] = 3  # ... and an object
+    keep = static_pixels(state)
+    margin = config.detection.dynamic_margin_px
+    assert not keep[200 - margin:240 + margin, 300 - margin:340 + margin].any()
+    assert not keep[100 - margin:110 + margin, 100 - margin:110 + margin].any()
+    assert keep[200 - margin - 1, 320] and keep[120, 105 + margin + 1]
+    assert keep.sum() == 480 * 640 - (40 + 2 * margin) ** 2 - (10 + 2 * margin) ** 2
+
+
+def test_depth_carries_poorly_supported_frames_when_asked(static_sequence):
+    """dense.carry_below_inliers: a frame with fewer feature inliers than this is placed by its
+    depth together with those inliers; asking more than any frame has, every frame is."""
+    sequence = open_sequence(static_sequence, max_frames=12)
+    _, reports = track(sequence, ["dense.enabled=true", "dense.carry_below_inliers=100000"])
+    assert all(r.tracked for r in reports)
+    assert all(r.by_depth for r in reports[1:])
+    assert ate(reports, sequence) < 0.01

@@ -13,6 +13,7 @@ import numpy as np
 from jsr.config import Config
 from jsr.pipeline.association import (MatchedFrame, inlier_landmarks, inlier_plane_landmarks, sample_colors)
 from jsr.pipeline.classify import segment_of_planes
+from jsr.pipeline.dense_alignment import depth_surface
 from jsr.pipeline.loop_closure import find_loop
 from jsr.pipeline.maps import Candidacy, Keyframe, ObjectMap
 from jsr.pipeline.measurements import FrameMeasurements, PointMeasurements
@@ -62,6 +63,7 @@ def initialise(state: SceneState, ctx: FrameContext, init_object_mask: np.ndarra
     state.camera.last_pose = pose
     state.camera.previous = (measurements, pose)
     remember_depth(state, ctx)
+    remember_surface(state, ctx)
 
 
 def segments_in_mask(measurements: FrameMeasurements, mask: np.ndarray) -> list[int]:
@@ -183,21 +185,42 @@ def update_static(state: SceneState, ctx: FrameContext) -> None:
     )
     report.new_keyframe = True
     remember_depth(state, ctx)
+    remember_surface(state, ctx)
     started = time.perf_counter()
     state.places.pending = find_loop(state.places, state.static_map, measurements, state.config, state.streams.loops)
     ctx.timings["loop_detection"] = (time.perf_counter() - started) * 1000.0
     state.bundle.maybe_start(state.static_map)
 
 
+def remember_surface(state: SceneState, ctx: FrameContext) -> None:
+    """Keep the new static keyframe's sampled static depth for the dense term of tracking
+    (:mod:`~jsr.pipeline.dense_alignment`)."""
+    if not state.config.dense.enabled:
+        return
+    keyframes = state.static_map.keyframes
+    for old in keyframes[-state.config.dense.keyframes - 1:-state.config.dense.keyframes]:
+        state.depth_surfaces.pop(old.keyframe_id, None)  # only the latest are aligned to
+    keyframe = keyframes[-1]
+    state.depth_surfaces[keyframe.keyframe_id] = depth_surface(ctx.frame.depth, ~not_static_pixels(state, ctx),
+                                                               state.intrinsics, state.config.dense,
+                                                               state.config.noise)
+
+
 def remember_depth(state: SceneState, ctx: FrameContext) -> None:
     """Keep the static pixels' depth of the new static keyframe (subsampled) for free-space tests."""
     if not (state.config.objects.enabled and state.config.objects.free_space_detection):
         return
-    # where objects (and people) were, nothing is known about free space ...
+    # where objects (and people) were, nothing is known about free space
+    state.free_space.remember(state.static_map.keyframes[-1], ctx.frame.depth, not_static_pixels(state, ctx))
+
+
+def not_static_pixels(state: SceneState, ctx: FrameContext) -> np.ndarray:
+    """``(H, W)`` bool: the frame's pixels given to objects or left dynamic, and those of the
+    segments held back because they may have moved (see ``without_suspects``)."""
     unknown = ownership_image(ctx.measurements, ctx.assignment, ctx.dynamic) > 0
-    if holding_back(state.config, ctx):  # ... nor where something may have moved to (see without_suspects)
+    if holding_back(state.config, ctx):
         unknown |= np.isin(ctx.measurements.segments.label_image, ctx.suspects)
-    state.free_space.remember(state.static_map.keyframes[-1], ctx.frame.depth, unknown)
+    return unknown
 
 
 def update_object(state: SceneState, ctx: FrameContext, outcome: ObjectTrackingResult) -> bool:

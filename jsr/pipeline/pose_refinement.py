@@ -123,12 +123,12 @@ def refine_pose_image_space(
     prior_sigmas: tuple[float, float] = (0.0, 0.0),
 ) -> np.ndarray | None:
     """Least squares on the inliers with residuals shaped like the sensor's noise
-    (:func:`_image_space_terms`), minimised with a Huber loss (scale 2 sigma) by
-    :func:`_minimise_huber` from ``transform``. None when too few residuals constrain the pose."""
-    linearised = _image_space_terms(problem, transform, masks, focal_length, prior, prior_sigmas)
+    (:func:`image_space_terms`), minimised with a Huber loss (scale 2 sigma) by
+    :func:`minimise_huber` from ``transform``. None when too few residuals constrain the pose."""
+    linearised = image_space_terms(problem, transform, masks, focal_length, prior, prior_sigmas)
     if linearised is None:
         return None
-    refined = _minimise_huber(linearised, transform[:3, :3], transform[:3, 3], HUBER_SCALE, max_iterations=50)
+    refined = minimise_huber(linearised, transform[:3, :3], transform[:3, 3], HUBER_SCALE, max_iterations=50)
     if refined is None:
         return None
     pose = np.eye(4)
@@ -136,7 +136,7 @@ def refine_pose_image_space(
     return pose
 
 
-def _image_space_terms(
+def image_space_terms(
     problem: RegistrationProblem,
     transform: np.ndarray,
     masks: list[np.ndarray],
@@ -238,7 +238,7 @@ def _left_jacobian_inverse(rotvec: np.ndarray) -> np.ndarray:
     return np.eye(3) - 0.5 * cross + factor * (cross @ cross)
 
 
-def _minimise_huber(linearised: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
+def minimise_huber(linearised: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
                     rotation: np.ndarray, translation: np.ndarray, scale: float,
                     max_iterations: int) -> tuple[np.ndarray, np.ndarray] | None:
     """Pose ``(rotation (3, 3), translation (3,))`` minimising the Huber cost (``scale``) of
@@ -289,4 +289,4 @@ def _minimise_huber(linearised: Callable[[np.ndarray, np.ndarray], tuple[np.ndar
     return rotation, translation
 
 
-__all__ = ["HUBER_SCALE", "refine_pose", "refine_pose_image_space"]
+__all__ = ["HUBER_SCALE", "image_space_terms", "minimise_huber", "refine_pose", "refine_pose_image_space"]

@@ -172,6 +172,7 @@ class ResultsWriter:
             "frames_lost": sum(not r.tracked for r in reports),
             "relocalisations": sum(r.relocalised for r in reports),
             "frames_bridged": sum(r.bridged for r in reports),
+            "frames_by_depth": sum(r.by_depth for r in reports),
             "seconds": seconds,
             "fps": len(reports) / seconds if seconds > 0 else 0.0,
             "maps": {

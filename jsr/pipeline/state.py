@@ -23,6 +23,7 @@ from jsr.io.camera import CameraIntrinsics
 from jsr.io.dataset import Frame
 from jsr.pipeline.association import MatchedFrame, inlier_mask
 from jsr.pipeline.bundle_scheduler import BundleScheduler
+from jsr.pipeline.dense_alignment import DepthSurface
 from jsr.pipeline.free_space import FreeSpaceViews
 from jsr.pipeline.loop_closure import PlaceIndex
 from jsr.pipeline.maps import Map, ObjectMap
@@ -65,6 +66,7 @@ class FrameReport:
     T_w_c: np.ndarray | None
     relocalised: bool = False
     bridged: bool = False
+    by_depth: bool = False  # placed by the dense term alone: the features failed
     reference_keyframe: int = -1
     T_keyframe_cam: np.ndarray | None = None
     new_keyframe: bool = False
@@ -183,7 +185,8 @@ class SceneState:
     of the object keyframes (an object's surface model for shape-based re-identification, and
     its extent). ``free_space``: subsampled depth of the latest static keyframes (free-space
     tests). ``merged_into``: object id -> the id of the map it was merged into. ``places``: the
-    static keyframes' appearance, for loop closure.
+    static keyframes' appearance, for loop closure. ``depth_surfaces``: the latest static
+    keyframes' sampled static depth, for the dense term of tracking.
     ``focal_length``: for image-space refinement (``ransac.refinement: image``), else None.
     """
 
@@ -208,6 +211,7 @@ class SceneState:
     vocabulary: VladVocabulary | None = None
     segment_index: SegmentIndex = field(default_factory=SegmentIndex)
     places: PlaceIndex = field(default_factory=PlaceIndex)
+    depth_surfaces: dict[int, DepthSurface] = field(default_factory=dict)  # static keyframe id -> its sampled depth (the latest dense.keyframes)
 
     @property
     def maps(self) -> list[Map]:

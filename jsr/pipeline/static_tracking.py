@@ -6,6 +6,7 @@ explain it in the previous frame (people) are left out: they would drag the came
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 
@@ -15,11 +16,17 @@ import numpy as np
 from jsr.pipeline.association import match_frame_to_map
 from jsr.pipeline.loop_closure import recognised_landmarks
 from jsr.pipeline.maps import Map
-from jsr.pipeline.registration import register
+from jsr.pipeline.dense_alignment import align_depth, carries, depth_target, frame_samples
+from jsr.pipeline.pose_refinement import image_space_terms
+from jsr.pipeline.pose_scoring import RegistrationProblem
+from jsr.pipeline.correspondences import RegistrationResult
+from jsr.pipeline.registration import evaluate_pose, pose_cost, register, surface_pose_result
 from jsr.pipeline.measurements import FrameMeasurements
 from jsr.pipeline.state import DYNAMIC, CameraTrack, FrameContext, FrameReport, SceneState, StaticRegistration
 
 logger = logging.getLogger(__name__)
+
+CHI_SQUARE_6DOF_99 = 16.81  # 99% quantile of a chi-square with 6 degrees of freedom (a pose's)
 
 
 def predicted_pose(camera: CameraTrack) -> np.ndarray | None:
@@ -62,7 +69,16 @@ def register_static(state: SceneState, ctx: FrameContext) -> None:
         registration_ms += (time.perf_counter() - tic) * 1000.0
         if result.success:
             break
-    bridged = False
+    bridged, dense_ms = False, 0.0
+    if not result.success and config.dense.enabled:
+        # The depth first: it places the frame against the map's keyframes themselves, where
+        # a bridge chains it to the previous frame and makes a keyframe of what the features
+        # saw (a blurred view, which bundle adjustment then holds poorly)
+        tic = time.perf_counter()
+        carried = with_depth(state, ctx, result, predicted)
+        dense_ms += (time.perf_counter() - tic) * 1000.0
+        if carried is not None:
+            result, report.by_depth = carried, True
     if not result.success and camera.previous is not None and config.matching.bridge_with_previous_frame:
         # The map has no good view of this frame (fast motion into unmapped space): register
         # against the previous tracked frame instead, and make this frame a keyframe so that
@@ -77,7 +93,16 @@ def register_static(state: SceneState, ctx: FrameContext) -> None:
         if bridge_result.success:
             matched, result, bridged = bridge, bridge_result, True
             camera.frames_bridged += 1
+    if result.success and not report.by_depth and config.dense.enabled:
+        tic = time.perf_counter()
+        with_dense = with_depth(state, ctx, result, predicted)  # a poorly supported frame, or dense.refine
+        dense_ms += (time.perf_counter() - tic) * 1000.0
+        if with_dense is not None:
+            report.by_depth = result.num_inliers < config.dense.carry_below_inliers  # carried, not refined
+            result = with_dense
     ctx.timings["matching"], ctx.timings["registration"] = matching_ms, registration_ms
+    if config.dense.enabled:
+        ctx.timings["dense"] = dense_ms
     report.matches, report.inliers = result.num_matches, result.num_inliers
 
     if not result.success:
@@ -100,6 +125,59 @@ def register_static(state: SceneState, ctx: FrameContext) -> None:
     ctx.static = StaticRegistration(matched, result, bridged)
 
 
+def with_depth(state: SceneState, ctx: FrameContext, result: RegistrationResult,
+               predicted: np.ndarray | None) -> RegistrationResult | None:
+    """The feature registration ``result`` with the frame's depth
+    (:func:`~jsr.pipeline.dense_alignment.align_depth` against the latest static keyframes'),
+    or None when the depth adds nothing.
+
+    * The features failed or are poorly supported (fewer than ``dense.carry_below_inliers``
+      inliers: blur, a view covered by people): the depth, with whatever feature inliers there
+      are, places the frame from the feature pose (the predicted pose when they failed), if
+      it :func:`~jsr.pipeline.dense_alignment.carries` it.
+    * Otherwise, with ``dense.refine``: features and depth minimised together, kept if the
+      feature inliers' cost rises by less than a chi-square with 6 degrees of freedom (99%):
+      beyond, depth and features disagree (the sensor's depth distortion, a surface that
+      moved) and the features are kept.
+
+    The result's inliers are the correspondences that agree with the new pose."""
+    config = state.config
+    weak = not result.success or result.num_inliers < config.dense.carry_below_inliers
+    start = result.transformation if result.success else predicted
+    if start is None or not (weak or config.dense.refine):
+        return None
+    recent = state.static_map.keyframes[-config.dense.keyframes:]
+    target = depth_target([(k.T_map_cam, state.depth_surfaces[k.keyframe_id]) for k in recent
+                           if k.keyframe_id in state.depth_surfaces])
+    if target is None:
+        return None
+    source, source_sigma = frame_samples(ctx.frame.depth, static_pixels(state), state.intrinsics, config.dense,
+                                         config.noise)
+    corr, features = result.correspondences, None
+    if result.success:
+        problem = RegistrationProblem(corr, config.ransac, config.noise)
+        masks = [result.inliers_point3d, result.inliers_point2d, result.inliers_plane]
+        features = image_space_terms(problem, result.transformation, masks, state.intrinsics.fx, None, (0.0, 0.0))
+    fit = align_depth(source, source_sigma, target, start, config.dense, features)
+    if fit is None:
+        return None
+    if weak:
+        if not carries(fit, config.dense):
+            return None
+        logger.info("frame %d: features %s; placed by its depth (%.0f%% of samples on the map)", ctx.frame.index,
+                    "failed" if not result.success else f"poorly supported ({result.num_inliers} inliers)",
+                    100 * fit.overlap)
+        return surface_pose_result(fit.pose, corr, config.ransac, config.noise, config.ransac.min_inliers)
+    rise = pose_cost(fit.pose, result, config.ransac, config.noise) - \
+        pose_cost(result.transformation, result, config.ransac, config.noise)
+    refined = evaluate_pose(fit.pose, corr, config.ransac, config.noise)
+    if rise > CHI_SQUARE_6DOF_99 or not refined.success:
+        logger.debug("frame %d: the depth-refined pose costs the features %.1f more; kept theirs",
+                     ctx.frame.index, rise)
+        return None
+    return dataclasses.replace(refined, iterations=result.iterations, time_ms=result.time_ms)
+
+
 def static_candidates(state: SceneState, measurements: FrameMeasurements) -> np.ndarray | None:
     """``(K,)`` the point measurements static registration may match: all (None) but those
     within ``detection.dynamic_margin_px`` (640 wide) of the previous frame's dynamic pixels
@@ -107,14 +185,29 @@ def static_candidates(state: SceneState, measurements: FrameMeasurements) -> np.
     previous = state.memory.previous_mask
     if previous is None or not np.any(previous == DYNAMIC):
         return None
-    dynamic = (previous == DYNAMIC).astype(np.uint8)
-    radius = int(round(state.config.detection.dynamic_margin_px * previous.shape[1] / 640))
-    if radius > 0:
-        dynamic = cv2.dilate(dynamic, np.ones((2 * radius + 1, 2 * radius + 1), np.uint8))
+    dynamic = _grown(previous == DYNAMIC, state.config.detection.dynamic_margin_px)
     height, width = previous.shape
     pixels = np.round(measurements.points.pixels).astype(np.int64)
     u, v = np.clip(pixels[:, 0], 0, width - 1), np.clip(pixels[:, 1], 0, height - 1)
-    return np.flatnonzero(dynamic[v, u] == 0)
+    return np.flatnonzero(~dynamic[v, u])
+
+
+def static_pixels(state: SceneState) -> np.ndarray | None:
+    """``(H, W)`` bool: the pixels the dense term may align, away (``detection.dynamic_margin_px``)
+    from whatever the previous frame gave to an object or left dynamic; None when it was all
+    static."""
+    previous = state.memory.previous_mask
+    if previous is None or not np.any(previous > 0):
+        return None
+    return ~_grown(previous > 0, state.config.detection.dynamic_margin_px)
+
+
+def _grown(mask: np.ndarray, margin_px: float) -> np.ndarray:
+    """``(H, W)`` bool ``mask`` grown by ``margin_px`` given at 640 wide."""
+    radius = int(round(margin_px * mask.shape[1] / 640))
+    if radius <= 0:
+        return mask
+    return cv2.dilate(mask.astype(np.uint8), np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)) > 0
 
 
 def previous_frame_map(camera: CameraTrack) -> Map:

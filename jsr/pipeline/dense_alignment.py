@@ -1,0 +1,245 @@
+"""The dense geometric term of static tracking: the frame's depth aligned to the depth of the
+static map's latest keyframes, beside the feature matches.
+
+Features place the camera from a few hundred keypoints; the depth image holds thousands of
+measurements of the same static surfaces, and stays sharp when the colour image blurs. Each
+static keyframe keeps a :class:`DepthSurface` (its static pixels sampled on a grid, with
+normals). :func:`align_depth` lays the frame's samples on the latest keyframes' surfaces by
+point-to-plane ICP (Chen and Medioni 1992; as KinectFusion tracks), each residual divided by its
+noise (the axial depth noise ``sigma_Z = c Z^2`` of both ends), minimised under a Huber loss
+together with the feature inliers' residuals (those of
+:func:`~jsr.pipeline.pose_refinement.refine_pose_image_space`), if any.
+
+With ``dense.enabled``, static tracking (:func:`~jsr.pipeline.static_tracking.with_depth`)
+lets the depth carry a frame whose features fail (and, with ``dense.carry_below_inliers``,
+one whose features are few) when the fit :func:`carries` it: most samples end on the
+keyframes' surfaces and these constrain every direction of the pose (not a single wall);
+``dense.refine`` refines every other frame this way. All are off by default: they carry a
+blurred stretch of Kinect footage, but real depth at 2-4 m (the Bonn footage's Xtion)
+disagrees with the features by centimetres, systematically, so that thousands of samples do
+not average it out, and the camera got worse there (figures in the config).
+
+Frames: a :class:`DepthSurface` is in its keyframe's camera frame, placed in the world by the
+keyframe's current pose (so it follows bundle adjustment and loop closure). Poses are
+``T_w_c`` ``(4, 4)``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from jsr.config import DenseConfig, NoiseConfig
+from jsr.geometry import transform_points
+from jsr.io.camera import CameraIntrinsics
+from jsr.pipeline.pose_refinement import HUBER_SCALE, minimise_huber
+
+logger = logging.getLogger(__name__)
+
+NORMAL_NEIGHBOUR_SPACINGS = 3.0  # a grid neighbour farther than this many sample spacings is across a depth edge
+
+
+@dataclass
+class DepthSurface:
+    """Sampled static depth of one keyframe: ``points`` ``(N, 3)`` and unit ``normals``
+    ``(N, 3)`` (facing the camera) in its camera frame, ``sigma`` ``(N,)`` axial noise (m)."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    sigma: np.ndarray
+
+
+@dataclass
+class DepthTarget:
+    """The surfaces of several keyframes in the world frame, with a search tree over them."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    sigma: np.ndarray
+    tree: cKDTree
+
+
+def sample_stride(config: DenseConfig, intrinsics: CameraIntrinsics) -> int:
+    """The sampling stride in pixels: ``dense.stride`` is given at 640 wide."""
+    return max(1, int(round(config.stride * intrinsics.width / 640)))
+
+
+def axial_sigma(z: np.ndarray, noise: NoiseConfig) -> np.ndarray:
+    """``(N,)`` axial depth noise at depths ``z``, at least the inlier floor's share (as the
+    feature residuals' ``depth_sigma``)."""
+    return np.maximum(noise.sigma_z_coefficient * z**2, noise.min_inlier_threshold / noise.inlier_sigmas)
+
+
+def depth_samples(depth: np.ndarray, keep: np.ndarray | None, intrinsics: CameraIntrinsics,
+                  stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """The grid of every ``stride``-th pixel of ``depth`` ``(H, W)`` metres back-projected
+    (through the lens distortion, if any): ``(h, w, 3)`` camera-frame points and ``(h, w)``
+    bool, valid depth where ``keep`` ``(H, W)``."""
+    grid = depth[::stride, ::stride].astype(np.float64)
+    rows, cols = np.mgrid[0:grid.shape[0], 0:grid.shape[1]]
+    u, v = (cols * stride).astype(np.float64), (rows * stride).astype(np.float64)
+    if intrinsics.has_distortion:
+        ideal = intrinsics.undistort_pixels(np.stack([u.ravel(), v.ravel()], axis=1))
+        u, v = ideal[:, 0].reshape(u.shape), ideal[:, 1].reshape(v.shape)
+    points = np.stack([(u - intrinsics.cx) / intrinsics.fx * grid, (v - intrinsics.cy) / intrinsics.fy * grid,
+                       grid], axis=-1)
+    valid = grid > 0
+    if keep is not None:
+        valid &= keep[::stride, ::stride]
+    return points, valid
+
+
+def depth_surface(depth: np.ndarray, keep: np.ndarray, intrinsics: CameraIntrinsics, config: DenseConfig,
+                  noise: NoiseConfig) -> DepthSurface:
+    """The samples of ``depth`` ``(H, W)`` at ``keep`` ``(H, W)`` bool (static pixels) with
+    normals from their grid neighbours (central differences; none across a depth edge)."""
+    stride = sample_stride(config, intrinsics)
+    points, valid = depth_samples(depth, keep, intrinsics, stride)
+    z = points[..., 2]
+    with_depth = z > 0
+    # neighbours left/right and up/down; those beyond the image or without depth are invalid
+    right, left = np.roll(points, -1, axis=1), np.roll(points, 1, axis=1)
+    down, up = np.roll(points, -1, axis=0), np.roll(points, 1, axis=0)
+    ok = valid & np.roll(with_depth, -1, 1) & np.roll(with_depth, 1, 1) & np.roll(with_depth, -1, 0) & \
+        np.roll(with_depth, 1, 0)
+    ok[:, [0, -1]] = False
+    ok[[0, -1], :] = False
+    spacing = stride * np.maximum(z, 1e-6) / intrinsics.fx
+    limit = 2.0 * NORMAL_NEIGHBOUR_SPACINGS * spacing
+    ok &= (np.linalg.norm(right - left, axis=-1) < limit) & (np.linalg.norm(down - up, axis=-1) < limit)
+    normals = np.cross(right - left, down - up)
+    length = np.linalg.norm(normals, axis=-1)
+    ok &= length > 1e-12
+    points, normals, length = points[ok], normals[ok], length[ok]
+    normals /= length[:, None]
+    normals *= -np.sign(np.einsum("ij,ij->i", normals, points))[:, None]  # facing the camera
+    return DepthSurface(points, normals, axial_sigma(points[:, 2], noise))
+
+
+def depth_target(surfaces: list[tuple[np.ndarray, DepthSurface]]) -> DepthTarget | None:
+    """The surfaces ``[(T_w_c, surface), ...]`` in the world frame; None without any point."""
+    parts = [(transform_points(T, s.points), s.normals @ T[:3, :3].T, s.sigma) for T, s in surfaces if len(s.points)]
+    if not parts:
+        return None
+    points, normals, sigma = (np.concatenate(p) for p in zip(*parts))
+    return DepthTarget(points, normals, sigma, cKDTree(points))
+
+
+def frame_samples(depth: np.ndarray, keep: np.ndarray | None, intrinsics: CameraIntrinsics, config: DenseConfig,
+                  noise: NoiseConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The frame's samples to align: ``(N, 3)`` camera-frame points and ``(N,)`` axial noise."""
+    points, valid = depth_samples(depth, keep, intrinsics, sample_stride(config, intrinsics))
+    points = points[valid]
+    return points, axial_sigma(points[:, 2], noise)
+
+
+def _pairs(source: np.ndarray, source_sigma: np.ndarray, target: DepthTarget, pose: np.ndarray,
+           config: DenseConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Nearest target point of every source point under ``pose``: the source points that found
+    one within ``dense.max_distance`` and off its plane by less than the gate, with the
+    target's points, normals and the pair's noise (``(K, 3)``, ``(K, 3)``, ``(K, 3)``, ``(K,)``)."""
+    in_world = transform_points(pose, source)
+    distance, nearest = target.tree.query(in_world, distance_upper_bound=config.max_distance)
+    found = np.isfinite(distance)
+    nearest = nearest[found]
+    q, n = target.points[nearest], target.normals[nearest]
+    sigma = np.hypot(source_sigma[found], target.sigma[nearest])
+    along = np.einsum("ij,ij->i", in_world[found] - q, n)
+    # pairs off the plane by more than the Huber region's reach are other surfaces
+    close = np.abs(along) < config.gate_sigmas * sigma
+    return source[found][close], q[close], n[close], sigma[close]
+
+
+def point_to_plane_terms(p: np.ndarray, q: np.ndarray, n: np.ndarray, sigma: np.ndarray):
+    """``linearised(rotation, translation) -> (residuals (K,), jacobian (K, 6))`` of the pairs
+    ``n . (R p + t - q) / sigma`` with respect to the step ``[w, dt]`` applied as
+    ``(Exp(w) R, t + dt)`` (:func:`~jsr.pipeline.pose_refinement.minimise_huber`)."""
+    weight = 1.0 / sigma
+
+    def linearised(rotation: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rotated = p @ rotation.T
+        residuals = np.einsum("ij,ij->i", rotated + translation - q, n) * weight
+        # d(Exp(w) R p)/dw = -[R p]_x, so d(n . R p)/dw = (R p) x n
+        jacobian = np.concatenate([np.cross(rotated, n), n], axis=1) * weight[:, None]
+        return residuals, jacobian
+
+    return linearised
+
+
+def _stacked(*terms):
+    """One ``linearised`` from several (None entries are skipped)."""
+    terms = [t for t in terms if t is not None]
+
+    def linearised(rotation: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        parts = [t(rotation, translation) for t in terms]
+        return np.concatenate([r for r, _ in parts]), np.concatenate([j for _, j in parts], axis=0)
+
+    return linearised
+
+
+@dataclass
+class DenseFit:
+    """Result of a dense alignment: ``pose`` ``T_w_c``, the share of the frame's samples that
+    lie on the target's surfaces within the noise at the end (``overlap``), how many of them
+    (``pairs``) and the standard deviation of the pose along its least constrained direction
+    by the depth term alone (``pose_sigma``, metres and radians mixed: large when the surfaces
+    leave a direction free, a corridor or a single wall)."""
+
+    pose: np.ndarray
+    overlap: float
+    pairs: int
+    pose_sigma: float
+
+
+def align_depth(source: np.ndarray, source_sigma: np.ndarray, target: DepthTarget, start: np.ndarray,
+                config: DenseConfig, features=None) -> DenseFit | None:
+    """The pose ``T_w_c`` that lays the frame's samples ``source`` ``(N, 3)`` (camera frame,
+    noise ``source_sigma`` ``(N,)``) on ``target``'s surfaces, from ``start``: ICP rounds, each
+    finding the pairs at the current pose and minimising their point-to-plane residuals
+    together with ``features`` (a ``linearised`` of
+    :func:`~jsr.pipeline.pose_refinement.image_space_terms` on the feature inliers; None: the
+    depth alone). None when the depth alone has fewer than 6 pairs."""
+    rotation, translation = start[:3, :3].copy(), start[:3, 3].copy()
+    for _ in range(config.iterations):
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = rotation, translation
+        p, q, n, sigma = _pairs(source, source_sigma, target, pose, config)
+        if len(p) < 6 and features is None:
+            return None
+        terms = point_to_plane_terms(p, q, n, sigma) if len(p) else None
+        solved = minimise_huber(_stacked(features, terms), rotation, translation, HUBER_SCALE, max_iterations=10)
+        if solved is None:
+            return None
+        step = np.linalg.norm(solved[1] - translation) + np.linalg.norm(cv2.Rodrigues(solved[0] @ rotation.T)[0])
+        rotation, translation = solved
+        if step < 1e-5:
+            break
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = rotation, translation
+    p, q, n, sigma = _pairs(source, source_sigma, target, pose, config)
+    pose_sigma = np.inf
+    if len(p) >= 6:
+        _, jacobian = point_to_plane_terms(p, q, n, sigma)(rotation, translation)
+        weakest = float(np.linalg.eigvalsh(jacobian.T @ jacobian)[0])
+        pose_sigma = 1.0 / np.sqrt(weakest) if weakest > 0 else np.inf
+    return DenseFit(pose, len(p) / max(len(source), 1), len(p), pose_sigma)
+
+
+def carries(fit: DenseFit | None, config: DenseConfig) -> bool:
+    """Whether the depth may place the frame by itself: at least ``dense.min_overlap`` of its
+    samples end on the keyframes' surfaces within the noise, and the surfaces constrain every
+    direction of the pose to ``dense.max_pose_sigma`` (not a single wall)."""
+    if fit is None:
+        return False
+    if fit.overlap < config.min_overlap or fit.pose_sigma > config.max_pose_sigma:
+        logger.debug("depth fit rejected: overlap %.2f, pose sigma %.3g", fit.overlap, fit.pose_sigma)
+        return False
+    return True
+
+
+__all__ = ["DenseFit", "DepthSurface", "DepthTarget", "align_depth", "carries", "depth_surface", "depth_target",
+           "frame_samples"]

@@ -1,0 +1,140 @@
+"""The dense term of static tracking: keyframe depth sampled with normals, a frame's depth
+aligned to it point-to-plane (alone, and beside feature residuals), and the checks that keep a
+poorly constrained alignment out."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from jsr.config import load_config
+from jsr.geometry import invert_transform, make_transform, rotation_angle
+from jsr.io.camera import CameraIntrinsics
+from jsr.pipeline.dense_alignment import (align_depth, carries, depth_surface, depth_target, frame_samples,
+                                          point_to_plane_terms)
+
+INTRINSICS = CameraIntrinsics(fx=240.0, fy=240.0, cx=159.5, cy=119.5, width=320, height=240)
+CONFIG = load_config(None)
+
+
+def quad(corner, along_u, along_v):
+    """Two triangles spanning ``corner + s u + t v`` (s, t in [0, 1])."""
+    corner, along_u, along_v = (np.asarray(x, dtype=np.float32) for x in (corner, along_u, along_v))
+    vertices = np.stack([corner, corner + along_u, corner + along_v, corner + along_u + along_v])
+    return vertices, np.array([[0, 1, 2], [1, 3, 2]], dtype=np.uint32)
+
+
+def room():
+    """A floor, two walls meeting in a corner and a box on the floor (world frame: y down,
+    the camera at the origin looks along +z)."""
+    quads = [quad([-3, 1, 0.5], [6, 0, 0], [0, 0, 5]),  # floor at y = 1
+             quad([-3, -2, 4], [6, 0, 0], [0, 3, 0]),  # back wall at z = 4
+             quad([-1.5, -2, 0.5], [0, 0, 5], [0, 3, 0])]  # side wall at x = -1.5
+    lo, hi = np.array([0.2, 0.6, 2.0]), np.array([0.6, 1.0, 2.4])  # a box standing on the floor
+    size = hi - lo
+    quads += [quad(lo, [size[0], 0, 0], [0, size[1], 0]), quad(lo, [0, 0, size[2]], [0, size[1], 0]),
+              quad(lo, [size[0], 0, 0], [0, 0, size[2]]), quad([hi[0], lo[1], lo[2]], [0, 0, size[2]], [0, size[1], 0])]
+    return quads
+
+
+def render_depth(quads, T_w_c, noise_rng=None) -> np.ndarray:
+    """``(H, W)`` depth (metres along the optical axis) seen from ``T_w_c``, with the axial
+    noise of the default config when ``noise_rng`` is given."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    for vertices, triangles in quads:
+        scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(triangles))
+    v, u = np.mgrid[0:INTRINSICS.height, 0:INTRINSICS.width]
+    rays_c = np.stack([(u - INTRINSICS.cx) / INTRINSICS.fx, (v - INTRINSICS.cy) / INTRINSICS.fy,
+                       np.ones_like(u, dtype=float)], axis=-1).reshape(-1, 3)
+    rays = np.concatenate([np.broadcast_to(T_w_c[:3, 3], rays_c.shape), rays_c @ T_w_c[:3, :3].T], axis=1)
+    hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy().astype(np.float64)
+    depth = np.where(np.isfinite(hit), hit, 0.0).reshape(INTRINSICS.height, INTRINSICS.width)  # rays have z = 1
+    if noise_rng is not None:
+        sigma = CONFIG.noise.sigma_z_coefficient * depth**2
+        depth = np.where(depth > 0, depth + noise_rng.normal(0.0, 1.0, depth.shape) * sigma, 0.0)
+    return depth.astype(np.float32)
+
+
+def moved(T, degrees, axis, translation):
+    return T @ make_transform(Rotation.from_rotvec(np.deg2rad(degrees) * np.asarray(axis, float)).as_matrix(),
+                              translation)
+
+
+def pose_error(a, b) -> tuple[float, float]:
+    relative = invert_transform(a) @ b
+    return float(np.linalg.norm(relative[:3, 3])), float(np.rad2deg(rotation_angle(relative[:3, :3])))
+
+
+def test_keyframe_surface_normals_fit_the_planes_and_face_the_camera():
+    depth = render_depth(room(), np.eye(4))
+    surface = depth_surface(depth, np.ones(depth.shape, bool), INTRINSICS, CONFIG.dense, CONFIG.noise)
+    assert len(surface.points) > 500
+    assert np.allclose(np.linalg.norm(surface.normals, axis=1), 1.0)
+    assert np.all(np.einsum("ij,ij->i", surface.normals, surface.points) < 0)  # towards the camera
+    # samples on the back wall (z = 4, away from its edges) have the normal (0, 0, -1)
+    wall = (np.abs(surface.points[:, 2] - 4.0) < 1e-3) & (surface.points[:, 0] > -1.2) & (surface.points[:, 1] < 0.7)
+    assert wall.sum() > 50
+    assert np.all(surface.normals[wall] @ [0, 0, -1] > np.cos(np.deg2rad(1.0)))
+    # the sigma is the axial noise at the sample's depth
+    assert np.allclose(surface.sigma[wall], CONFIG.noise.sigma_z_coefficient * 16.0, rtol=1e-3)
+    # every surface is axis-aligned: only samples on a crease (two faces within their
+    # neighbours) have a normal between two axes; none takes one across the box's silhouette
+    off_axis = np.abs(surface.normals).max(axis=1) < np.cos(np.deg2rad(5.0))
+    assert off_axis.mean() < 0.08
+    kept_out = np.zeros(depth.shape, bool)
+    kept_out[:, :160] = True
+    half = depth_surface(depth, ~kept_out, INTRINSICS, CONFIG.dense, CONFIG.noise)
+    assert len(half.points) < 0.6 * len(surface.points)
+    assert np.all(half.points[:, 0] / half.points[:, 2] * INTRINSICS.fx + INTRINSICS.cx >= 159.0)
+
+
+def test_depth_alone_recovers_a_pose_predicted_centimetres_off():
+    rng = np.random.default_rng(0)
+    keyframes = [np.eye(4), moved(np.eye(4), 6.0, [0, 1, 0], [0.15, 0.0, 0.05])]
+    target = depth_target([(T, depth_surface(render_depth(room(), T, rng), np.ones((240, 320), bool), INTRINSICS,
+                                             CONFIG.dense, CONFIG.noise)) for T in keyframes])
+    truth = moved(np.eye(4), 4.0, [0.3, 1, 0], [0.08, -0.03, 0.1])
+    source, sigma = frame_samples(render_depth(room(), truth, rng), None, INTRINSICS, CONFIG.dense, CONFIG.noise)
+    predicted = moved(truth, 1.5, [1, 0, 0.5], [0.02, 0.015, -0.02])
+    assert pose_error(predicted, truth)[0] > 0.03
+    fit = align_depth(source, sigma, target, predicted, CONFIG.dense)
+    assert carries(fit, CONFIG.dense)
+    translation, degrees = pose_error(fit.pose, truth)
+    assert translation < 0.003 and degrees < 0.15
+    assert fit.overlap > 0.9 and fit.pose_sigma < 0.005
+
+
+def test_depth_alone_refuses_a_single_wall():
+    wall = [quad([-3, -2, 3], [6, 0, 0], [0, 4, 0])]
+    target = depth_target([(np.eye(4), depth_surface(render_depth(wall, np.eye(4)), np.ones((240, 320), bool),
+                                                     INTRINSICS, CONFIG.dense, CONFIG.noise))])
+    truth = moved(np.eye(4), 0.0, [0, 1, 0], [0.05, 0.0, 0.0])
+    source, sigma = frame_samples(render_depth(wall, truth), None, INTRINSICS, CONFIG.dense, CONFIG.noise)
+    # the wall fixes depth and two rotations; sliding along it is free
+    fit = align_depth(source, sigma, target, truth, CONFIG.dense)
+    assert fit is not None and fit.overlap > 0.9
+    assert not carries(fit, CONFIG.dense)
+
+
+def test_features_and_depth_together_fix_what_depth_alone_leaves_free():
+    """A single wall leaves three directions free; three feature points off the wall's plane,
+    given as residuals of their own (a ``linearised`` like the image-space feature terms),
+    fix them, and the depth still sets the distance to the wall."""
+    wall = [quad([-3, -2, 3], [6, 0, 0], [0, 4, 0])]
+    target = depth_target([(np.eye(4), depth_surface(render_depth(wall, np.eye(4)), np.ones((240, 320), bool),
+                                                     INTRINSICS, CONFIG.dense, CONFIG.noise))])
+    truth = moved(np.eye(4), 2.0, [0, 1, 0], [0.05, 0.02, 0.0])
+    source, sigma = frame_samples(render_depth(wall, truth), None, INTRINSICS, CONFIG.dense, CONFIG.noise)
+    # three world points known in the camera frame, as point-to-plane pairs along x, y and z
+    world = np.array([[0.5, 0.2, 2.0], [-0.4, -0.3, 2.5], [0.1, 0.5, 1.5]])
+    in_camera = (world - truth[:3, 3]) @ truth[:3, :3]
+    p = np.repeat(in_camera, 3, axis=0)
+    q = np.repeat(world, 3, axis=0)
+    n = np.tile(np.eye(3), (3, 1))
+    features = point_to_plane_terms(p, q, n, np.full(len(p), 0.002))
+    start = moved(truth, 0.5, [0, 0, 1], [0.01, -0.01, 0.01])
+    fit = align_depth(source, sigma, target, start, CONFIG.dense, features)
+    translation, degrees = pose_error(fit.pose, truth)
+    assert translation < 0.002 and degrees < 0.1
