@@ -217,7 +217,7 @@ class DenseConfig:
     gate_sigmas: float = 5.0
     iterations: int = 5
     min_overlap: float = 0.5
-    max_pose_sigma: float = 0.01
+    min_normal_spread: float = 0.01
 
 
 @dataclass
@@ -399,7 +399,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "dense.gate_sigmas": (lambda v: v > 0, "positive"),
     "dense.iterations": (lambda v: v >= 1, "at least 1"),
     "dense.min_overlap": (lambda v: 0 < v <= 1, "in (0, 1]"),
-    "dense.max_pose_sigma": (lambda v: v > 0, "positive"),
+    "dense.min_normal_spread": (lambda v: 0 <= v <= 1 / 3, "in [0, 1/3]"),
     "loop_closure.min_keyframe_gap": (lambda v: v >= 1, "at least 1"),
     "loop_closure.candidates": (lambda v: v >= 1, "at least 1"),
     "loop_closure.min_inliers": (lambda v: v >= 3, "at least 3"),

@@ -13,7 +13,7 @@ together with the feature inliers' residuals (those of
 With ``dense.enabled``, static tracking (:func:`~jsr.pipeline.static_tracking.with_depth`)
 lets the depth carry a frame whose features fail (and, with ``dense.carry_below_inliers``,
 one whose features are few) when the fit :func:`carries` it: most samples end on the
-keyframes' surfaces and these constrain every direction of the pose (not a single wall);
+keyframes' surfaces and their normals face three ways (not a single wall or a corridor);
 ``dense.refine`` refines every other frame this way. All are off by default: they carry a
 blurred stretch of Kinect footage, but real depth at 2-4 m (the Bonn footage's Xtion)
 disagrees with the features by centimetres, systematically, so that thousands of samples do
@@ -40,7 +40,7 @@ from jsr.pipeline.pose_refinement import HUBER_SCALE, minimise_huber
 
 logger = logging.getLogger(__name__)
 
-NORMAL_NEIGHBOUR_SPACINGS = 3.0  # a grid neighbour farther than this many sample spacings is across a depth edge
+NORMAL_NEIGHBOUR_SPACINGS = 6.0  # a grid neighbour farther than this many sample spacings (depth over focal length) is across a depth edge
 
 
 @dataclass
@@ -100,17 +100,16 @@ def depth_surface(depth: np.ndarray, keep: np.ndarray, intrinsics: CameraIntrins
     stride = sample_stride(config, intrinsics)
     points, valid = depth_samples(depth, keep, intrinsics, stride)
     z = points[..., 2]
-    with_depth = z > 0
-    # neighbours left/right and up/down; those beyond the image or without depth are invalid
+    # neighbours left/right and up/down, each a kept sample near the centre (the rolls wrap
+    # around: the border samples get no normal)
     right, left = np.roll(points, -1, axis=1), np.roll(points, 1, axis=1)
     down, up = np.roll(points, -1, axis=0), np.roll(points, 1, axis=0)
-    ok = valid & np.roll(with_depth, -1, 1) & np.roll(with_depth, 1, 1) & np.roll(with_depth, -1, 0) & \
-        np.roll(with_depth, 1, 0)
+    ok = valid & np.roll(valid, -1, 1) & np.roll(valid, 1, 1) & np.roll(valid, -1, 0) & np.roll(valid, 1, 0)
     ok[:, [0, -1]] = False
     ok[[0, -1], :] = False
-    spacing = stride * np.maximum(z, 1e-6) / intrinsics.fx
-    limit = 2.0 * NORMAL_NEIGHBOUR_SPACINGS * spacing
-    ok &= (np.linalg.norm(right - left, axis=-1) < limit) & (np.linalg.norm(down - up, axis=-1) < limit)
+    limit = NORMAL_NEIGHBOUR_SPACINGS * stride * np.maximum(z, 1e-6) / intrinsics.fx
+    for neighbour in (right, left, down, up):
+        ok &= np.linalg.norm(neighbour - points, axis=-1) < limit
     normals = np.cross(right - left, down - up)
     length = np.linalg.norm(normals, axis=-1)
     ok &= length > 1e-12
@@ -185,14 +184,14 @@ def _stacked(*terms):
 class DenseFit:
     """Result of a dense alignment: ``pose`` ``T_w_c``, the share of the frame's samples that
     lie on the target's surfaces within the noise at the end (``overlap``), how many of them
-    (``pairs``) and the standard deviation of the pose along its least constrained direction
-    by the depth term alone (``pose_sigma``, metres and radians mixed: large when the surfaces
-    leave a direction free, a corridor or a single wall)."""
+    (``pairs``) and how their surfaces' normals spread (``normal_spread``, 0 to 1/3,
+    :func:`normal_spread`: near 0 when the surfaces leave a direction of translation free, a
+    single wall or a corridor)."""
 
     pose: np.ndarray
     overlap: float
     pairs: int
-    pose_sigma: float
+    normal_spread: float
 
 
 def align_depth(source: np.ndarray, source_sigma: np.ndarray, target: DepthTarget, start: np.ndarray,
@@ -221,25 +220,37 @@ def align_depth(source: np.ndarray, source_sigma: np.ndarray, target: DepthTarge
     pose = np.eye(4)
     pose[:3, :3], pose[:3, 3] = rotation, translation
     p, q, n, sigma = _pairs(source, source_sigma, target, pose, config)
-    pose_sigma = np.inf
-    if len(p) >= 6:
-        _, jacobian = point_to_plane_terms(p, q, n, sigma)(rotation, translation)
-        weakest = float(np.linalg.eigvalsh(jacobian.T @ jacobian)[0])
-        pose_sigma = 1.0 / np.sqrt(weakest) if weakest > 0 else np.inf
-    return DenseFit(pose, len(p) / max(len(source), 1), len(p), pose_sigma)
+    return DenseFit(pose, len(p) / max(len(source), 1), len(p), normal_spread(q, target))
+
+
+def normal_spread(points: np.ndarray, target: DepthTarget) -> float:
+    """The smallest eigenvalue of the mean ``n n^T`` of the target's normals at ``points``
+    ``(K, 3)`` (world frame), each normal averaged with its 8 nearest samples' first.
+
+    The pose's information from thousands of samples says little about degeneracy: the
+    normals' own noise (about 12 degrees on a flat wall at 3 m) makes it look constrained
+    along the wall, and so does their spread unless they are averaged (a wall at 4.5 m: 0.06
+    raw, below 0.01 averaged)."""
+    if len(points) < 9:
+        return 0.0
+    _, neighbours = target.tree.query(points, k=9)
+    averaged = target.normals[neighbours].mean(axis=1)
+    averaged /= np.maximum(np.linalg.norm(averaged, axis=1, keepdims=True), 1e-12)
+    return float(np.linalg.eigvalsh(averaged.T @ averaged / len(averaged))[0])
 
 
 def carries(fit: DenseFit | None, config: DenseConfig) -> bool:
     """Whether the depth may place the frame by itself: at least ``dense.min_overlap`` of its
-    samples end on the keyframes' surfaces within the noise, and the surfaces constrain every
-    direction of the pose to ``dense.max_pose_sigma`` (not a single wall)."""
+    samples end on the keyframes' surfaces within the noise, and their normals spread by at
+    least ``dense.min_normal_spread`` (surfaces facing three ways: not a single wall or a
+    corridor)."""
     if fit is None:
         return False
-    if fit.overlap < config.min_overlap or fit.pose_sigma > config.max_pose_sigma:
-        logger.debug("depth fit rejected: overlap %.2f, pose sigma %.3g", fit.overlap, fit.pose_sigma)
+    if fit.overlap < config.min_overlap or fit.normal_spread < config.min_normal_spread:
+        logger.debug("depth fit rejected: overlap %.2f, normal spread %.3f", fit.overlap, fit.normal_spread)
         return False
     return True
 
 
 __all__ = ["DenseFit", "DepthSurface", "DepthTarget", "align_depth", "carries", "depth_surface", "depth_target",
-           "frame_samples"]
+           "frame_samples", "normal_spread"]

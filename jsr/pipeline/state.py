@@ -66,7 +66,7 @@ class FrameReport:
     T_w_c: np.ndarray | None
     relocalised: bool = False
     bridged: bool = False
-    by_depth: bool = False  # placed by the dense term alone: the features failed
+    by_depth: bool = False  # placed by its depth: the features failed (or had fewer inliers than dense.carry_below_inliers)
     reference_keyframe: int = -1
     T_keyframe_cam: np.ndarray | None = None
     new_keyframe: bool = False

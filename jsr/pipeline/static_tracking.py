@@ -159,15 +159,16 @@ def with_depth(state: SceneState, ctx: FrameContext, result: RegistrationResult,
         masks = [result.inliers_point3d, result.inliers_point2d, result.inliers_plane]
         features = image_space_terms(problem, result.transformation, masks, state.intrinsics.fx, None, (0.0, 0.0))
     fit = align_depth(source, source_sigma, target, start, config.dense, features)
-    if fit is None:
+    if fit is None or fit.pairs < 6:  # the depth took no part
         return None
     if weak:
         if not carries(fit, config.dense):
             return None
+        how = "failed" if not result.success else f"poorly supported ({result.num_inliers} inliers)"
         logger.info("frame %d: features %s; placed by its depth (%.0f%% of samples on the map)", ctx.frame.index,
-                    "failed" if not result.success else f"poorly supported ({result.num_inliers} inliers)",
-                    100 * fit.overlap)
-        return surface_pose_result(fit.pose, corr, config.ransac, config.noise, config.ransac.min_inliers)
+                    how, 100 * fit.overlap)
+        carried = surface_pose_result(fit.pose, corr, config.ransac, config.noise, config.ransac.min_inliers)
+        return dataclasses.replace(carried, reason=f"pose from the frame's depth (features {how})")
     rise = pose_cost(fit.pose, result, config.ransac, config.noise) - \
         pose_cost(result.transformation, result, config.ransac, config.noise)
     refined = evaluate_pose(fit.pose, corr, config.ransac, config.noise)
