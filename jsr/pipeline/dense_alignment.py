@@ -36,6 +36,7 @@ from scipy.spatial import cKDTree
 from jsr.config import DenseConfig, NoiseConfig
 from jsr.geometry import transform_points
 from jsr.io.camera import CameraIntrinsics
+from jsr.pipeline.correspondences import depth_thresholds
 from jsr.pipeline.pose_refinement import HUBER_SCALE, minimise_huber
 
 logger = logging.getLogger(__name__)
@@ -69,9 +70,10 @@ def sample_stride(config: DenseConfig, intrinsics: CameraIntrinsics) -> int:
 
 
 def axial_sigma(z: np.ndarray, noise: NoiseConfig) -> np.ndarray:
-    """``(N,)`` axial depth noise at depths ``z``, at least the inlier floor's share (as the
-    feature residuals' ``depth_sigma``)."""
-    return np.maximum(noise.sigma_z_coefficient * z**2, noise.min_inlier_threshold / noise.inlier_sigmas)
+    """``(N,)`` axial depth noise at depths ``z``: the inlier threshold over its number of
+    sigmas (:func:`~jsr.pipeline.correspondences.depth_thresholds`; at least the floor's share,
+    as the feature residuals' ``depth_sigma``)."""
+    return depth_thresholds(z, noise) / noise.inlier_sigmas
 
 
 def depth_samples(depth: np.ndarray, keep: np.ndarray | None, intrinsics: CameraIntrinsics,

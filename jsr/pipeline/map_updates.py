@@ -63,7 +63,6 @@ def initialise(state: SceneState, ctx: FrameContext, init_object_mask: np.ndarra
     state.camera.last_pose = pose
     state.camera.previous = (measurements, pose)
     remember_depth(state, ctx)
-    remember_surface(state, ctx)
 
 
 def segments_in_mask(measurements: FrameMeasurements, mask: np.ndarray) -> list[int]:
@@ -185,33 +184,29 @@ def update_static(state: SceneState, ctx: FrameContext) -> None:
     )
     report.new_keyframe = True
     remember_depth(state, ctx)
-    remember_surface(state, ctx)
     started = time.perf_counter()
     state.places.pending = find_loop(state.places, state.static_map, measurements, state.config, state.streams.loops)
     ctx.timings["loop_detection"] = (time.perf_counter() - started) * 1000.0
     state.bundle.maybe_start(state.static_map)
 
 
-def remember_surface(state: SceneState, ctx: FrameContext) -> None:
-    """Keep the new static keyframe's sampled static depth for the dense term of tracking
-    (:mod:`~jsr.pipeline.dense_alignment`)."""
-    if not state.config.dense.enabled:
-        return
-    keyframes = state.static_map.keyframes
-    for old in keyframes[-state.config.dense.keyframes - 1:-state.config.dense.keyframes]:
-        state.depth_surfaces.pop(old.keyframe_id, None)  # only the latest are aligned to
-    keyframe = keyframes[-1]
-    state.depth_surfaces[keyframe.keyframe_id] = depth_surface(ctx.frame.depth, ~not_static_pixels(state, ctx),
-                                                               state.intrinsics, state.config.dense,
-                                                               state.config.noise)
-
-
 def remember_depth(state: SceneState, ctx: FrameContext) -> None:
-    """Keep the static pixels' depth of the new static keyframe (subsampled) for free-space tests."""
-    if not (state.config.objects.enabled and state.config.objects.free_space_detection):
+    """Keep the new static keyframe's depth on its static pixels: subsampled for free-space
+    tests (objects on) and sampled with normals for the dense term of tracking
+    (``dense.enabled``, :mod:`~jsr.pipeline.dense_alignment`). Where objects (and people)
+    were, nothing is known of either."""
+    free_space = state.config.objects.enabled and state.config.objects.free_space_detection
+    if not (free_space or state.config.dense.enabled):
         return
-    # where objects (and people) were, nothing is known about free space
-    state.free_space.remember(state.static_map.keyframes[-1], ctx.frame.depth, not_static_pixels(state, ctx))
+    unknown = not_static_pixels(state, ctx)
+    keyframes = state.static_map.keyframes
+    if free_space:
+        state.free_space.remember(keyframes[-1], ctx.frame.depth, unknown)
+    if state.config.dense.enabled:
+        for old in keyframes[-state.config.dense.keyframes - 1:-state.config.dense.keyframes]:
+            state.depth_surfaces.pop(old.keyframe_id, None)  # only the latest are aligned to
+        state.depth_surfaces[keyframes[-1].keyframe_id] = depth_surface(
+            ctx.frame.depth, ~unknown, state.intrinsics, state.config.dense, state.config.noise)
 
 
 def not_static_pixels(state: SceneState, ctx: FrameContext) -> np.ndarray:
