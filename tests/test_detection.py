@@ -249,3 +249,22 @@ def test_free_space_lets_fewer_displaced_landmarks_suffice(share, violations, ex
     groups = displaced_landmark_groups(segments, displaced, projecting, np.ones(5, dtype=bool), in_free_space,
                                        agreeing, 25, config)
     assert groups == expected
+
+
+def test_adjacency_pairs_match_every_pixel_pair_within_the_gap():
+    """The pairs equal those of a direct scan over every pixel pair within the gap, for labels
+    anywhere in the image (the scan is cropped to the labels' box)."""
+    rng = np.random.default_rng(5)
+    for trial in range(6):
+        labels = np.full((40, 50), -1)
+        top, left = rng.integers(0, 30), rng.integers(0, 40)
+        labels[top:top + 10, left:left + 10] = rng.integers(-1, 4 + trial, size=(10, 10))[: 40 - top, : 50 - left]
+        for gap in (0, 2):
+            reach = gap + 1
+            expected = set()
+            for y, x in zip(*np.nonzero(labels >= 0)):
+                window = labels[max(0, y - reach):y + reach + 1, max(0, x - reach):x + reach + 1]
+                for other in np.unique(window[(window >= 0) & (window != labels[y, x])]):
+                    expected.add((min(labels[y, x], other), max(labels[y, x], other)))
+            assert {tuple(p) for p in segment_adjacency_pairs(labels, gap).tolist()} == expected
+    assert segment_adjacency_pairs(np.full((5, 5), -1)).shape == (0, 2)

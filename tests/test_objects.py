@@ -1584,7 +1584,7 @@ def test_surface_alignment_is_drawn_again_while_nothing_is_kept(monkeypatch):
         monkeypatch.setattr(reconstructor.state.surfaces, "model", lambda object_map: "its surface model")
         monkeypatch.setattr(shape_reidentification, "could_hold", lambda model, region: True)
         lost = [SimpleNamespace(object_id=1)]
-        ctx = SimpleNamespace(frame=frame, measurements=measurements, self_textures={}, surface_alignments=0)
+        ctx = SimpleNamespace(frame=frame, measurements=measurements, surface_alignments=0)
         assert shape_reidentification.reidentify_by_shape(reconstructor.state, ctx, [3], None, lost, {},
                                                           attempts) is found
         assert len(seen) == calls
@@ -1733,18 +1733,50 @@ def test_surface_alignments_per_frame_are_bounded(monkeypatch):
     lost = [SimpleNamespace(object_id=k) for k in (4, 7, 9)]
     state = SimpleNamespace(config=config, intrinsics=None,
                             surfaces=SimpleNamespace(model=lambda object_map: f"model {object_map.object_id}"))
-    ctx = SimpleNamespace(frame=SimpleNamespace(index=85, depth=None, color=None), self_textures={},
+    ctx = SimpleNamespace(frame=SimpleNamespace(index=85, depth=None, color=None),
                           measurements=SimpleNamespace(segments=SimpleNamespace(label_image=np.zeros((4, 4), int))),
                           surface_alignments=0)
     sampled, aligned = [], []
     monkeypatch.setattr(shape, "sample_surface", lambda *args: sampled.append(1))
     monkeypatch.setattr(shape, "region_model", lambda sample, voxel: "region")
     monkeypatch.setattr(shape, "could_hold", lambda model, region: True)
-    monkeypatch.setattr(shape, "align_to_lost_objects", lambda state, ctx, group, points, region, models, textures,
-                        outcomes: aligned.append([m.object_id for m, _ in models]) and False)
+    monkeypatch.setattr(shape, "align_to_lost_objects", lambda state, ctx, group, points, region, models, outcomes:
+                        aligned.append([m.object_id for m, _ in models]) and False)
     for _ in range(2):  # as the detection draws: once for every region, then again: 18 alignments asked for
         for region in range(3):
             assert not shape.reidentify_by_shape(state, ctx, [region], np.zeros(0, int), lost, {}, draws=1)
     assert aligned == [[4, 7, 9], [4, 7]]  # region 0 against all three, region 1 against the first two
     assert ctx.surface_alignments == 5
     assert len(sampled) == 2  # later regions found the budget spent
+
+
+def test_an_objects_surface_model_is_built_again_only_when_its_views_change(monkeypatch):
+    """``ObjectSurfaces`` keeps an object's model and its own views' texture agreement while its
+    keyframes (their samples and poses) stay the same, and builds them again when one moves or
+    is added."""
+    from jsr.pipeline.object_surfaces import ObjectSurfaces
+    from jsr.pipeline.surfaces import SurfaceSample
+    from jsr.synth.scene import synth_intrinsics
+
+    surfaces = ObjectSurfaces(load_config(None), synth_intrinsics(320, 240))
+    rng = np.random.default_rng(0)
+
+    def sample():
+        return SurfaceSample(rng.uniform(-0.1, 0.1, (400, 3)).astype(np.float32) + np.float32([0, 0, 1]),
+                             rng.integers(0, 255, (400, 3)).astype(np.uint8))
+
+    keyframes = [SimpleNamespace(frame_index=k, T_map_cam=np.eye(4)) for k in (3, 7)]
+    object_map = SimpleNamespace(object_id=5, keyframes=keyframes)
+    surfaces.samples = {3: {5: sample()}, 7: {5: sample()}}
+    computed = []
+    monkeypatch.setattr(surfaces, "own_texture", lambda m: computed.append(m.object_id) or 0.5)
+    model = surfaces.model(object_map)
+    assert model is not None and surfaces.model(object_map) is model
+    assert surfaces.self_texture(object_map) == surfaces.self_texture(object_map) == 0.5 and computed == [5]
+    keyframes[1].T_map_cam[0, 3] = 0.05  # bundle adjustment moved a keyframe (in place)
+    moved = surfaces.model(object_map)
+    assert moved is not model and surfaces.self_texture(object_map) == 0.5 and computed == [5, 5]
+    keyframes.append(SimpleNamespace(frame_index=9, T_map_cam=np.eye(4)))
+    assert surfaces.model(object_map) is moved  # no sample of frame 9: the same views
+    surfaces.samples[9] = {5: sample()}
+    assert surfaces.model(object_map) is not moved

@@ -573,3 +573,24 @@ def test_segments_off_the_object_surface_are_found():
     second.dormant = False  # the other object is tracked in this frame: no one else to find there
     outcomes[2] = SimpleNamespace(object_map=second, success=True)
     assert off_surface(state, ctx, [0, 1, 2], outcome, outcomes) == []
+
+
+def test_a_models_alignment_descriptors_are_kept_and_give_the_same_alignments():
+    """The model's descriptors are computed once per alignment voxel (a lost object's model is
+    aligned to the moving regions of many frames) and kept on the model; aligning with them gives
+    what a fresh copy of the model gives."""
+    points, colors = _box_faces()
+    T_model_camera = make_transform(rotation_about_axis([1.0, 0.0, 0.0], np.pi), [0.0, 0.0, 0.8])
+    model = build_model([(T_model_camera, _view(points, colors, T_model_camera))], VOXEL)
+    fresh = build_model([(T_model_camera, _view(points, colors, T_model_camera))], VOXEL)
+    T_true = make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.radians(40)), [0.02, 0.01, 0.0])
+    region = build_model([(T_model_camera, _view(transform_points(T_true, points), colors, T_model_camera))], VOXEL)
+    first = align_surfaces(region, model, VOXEL, np.random.default_rng(3))
+    assert len(model.derived) == 1 and not fresh.derived
+    kept = next(iter(model.derived.values()))
+    again = align_surfaces(region, model, VOXEL, np.random.default_rng(3))
+    assert next(iter(model.derived.values())) is kept  # not computed again
+    for alignments in (again, align_surfaces(region, fresh, VOXEL, np.random.default_rng(3))):
+        assert len(alignments) == len(first) > 0
+        for a, b in zip(alignments, first):
+            np.testing.assert_array_equal(a.T_model_region, b.T_model_region)

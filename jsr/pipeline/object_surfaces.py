@@ -8,6 +8,8 @@ that its landmarks no longer match) and span its extent together with its landma
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -31,6 +33,17 @@ SELF_TEXTURE_VIEWS = 6  # an object's latest keyframe samples that measure how i
 SELF_TEXTURE_MIN = 0.2  # own views agreeing less (an object of one colour): no texture to tell fits apart (measured: kitchen_box120 0.38-0.51, synthetic 0.87-0.9)
 
 
+@dataclass
+class _BuiltModel:
+    """An object's surface model, the views ``[(T_map_cam copy, sample), ...]`` it was built
+    from, and its own views' texture agreement once computed (``textured``)."""
+
+    views: list
+    model: SurfaceModel | None
+    own_texture: float | None = None
+    textured: bool = False
+
+
 class ObjectSurfaces:
     """Surface samples of the object keyframes: ``samples[frame index][object id]`` (camera
     frame of that frame)."""
@@ -39,6 +52,9 @@ class ObjectSurfaces:
         self.config = config
         self.intrinsics = intrinsics
         self.samples: dict[int, dict[int, SurfaceSample]] = {}
+        # a lost object's model is asked for in every frame with a moving region, and building
+        # it (normals) and its own texture take 0.1-0.3 s each: kept while its views stay the same
+        self._built: dict[int, _BuiltModel] = {}
 
     def of(self, frame_index: int, object_id: int) -> SurfaceSample | None:
         """The sample object ``object_id`` got in frame ``frame_index``, if any."""
@@ -67,15 +83,28 @@ class ObjectSurfaces:
                 sample = surfaces.pop(source_id)
                 surfaces.setdefault(target_id, sample)
 
+    def _views(self, object_map: ObjectMap) -> list[tuple[np.ndarray, SurfaceSample]]:
+        """``[(T_map_cam, sample), ...]`` of the object's keyframes that have a sample."""
+        views = [(keyframe.T_map_cam, self.of(keyframe.frame_index, object_map.object_id))
+                 for keyframe in object_map.keyframes]
+        return [(T, sample) for T, sample in views if sample is not None]
+
+    def _built_model(self, object_map: ObjectMap) -> _BuiltModel:
+        """The object's model as last built, built anew when its views changed (a keyframe
+        added, moved by bundle adjustment, or a sample moved by a merge)."""
+        views = self._views(object_map)
+        built = self._built.get(object_map.object_id)
+        if built is None or len(built.views) != len(views) or not all(
+                a[1] is b[1] and np.array_equal(a[0], b[0]) for a, b in zip(built.views, views)):
+            model = build_model(views, self.config.objects.shape_voxel) if views else None
+            built = _BuiltModel([(T.copy(), sample) for T, sample in views], model)
+            self._built[object_map.object_id] = built
+        return built
+
     def model(self, object_map: ObjectMap) -> SurfaceModel | None:
         """The object's surface in its map frame, from the samples of its keyframes (at their
         current, bundle-adjusted poses); None without enough points."""
-        views = []
-        for keyframe in object_map.keyframes:
-            sample = self.of(keyframe.frame_index, object_map.object_id)
-            if sample is not None:
-                views.append((keyframe.T_map_cam, sample))
-        return build_model(views, self.config.objects.shape_voxel) if views else None
+        return self._built_model(object_map).model
 
     def extent_points(self, object_map: ObjectMap) -> np.ndarray:
         """``(N, 3)`` points (object map frame) whose convex hull is the object's extent: its
@@ -98,6 +127,13 @@ class ObjectSurfaces:
         return np.vstack(parts)
 
     def self_texture(self, object_map: ObjectMap) -> float | None:
+        """:meth:`own_texture`, computed once while the object's views stay the same."""
+        built = self._built_model(object_map)
+        if not built.textured:
+            built.own_texture, built.textured = self.own_texture(object_map), True
+        return built.own_texture
+
+    def own_texture(self, object_map: ObjectMap) -> float | None:
         """Median texture agreement (:func:`~jsr.pipeline.surface_evidence.texture_agreement`) of
         each of the object's last keyframe surface samples with the model of its other
         keyframes, at their bundle-adjusted poses: how well the object's own views line up
@@ -105,9 +141,7 @@ class ObjectSurfaces:
         (SELF_TEXTURE_MIN_OVERLAP: two views that share an edge only compare little); None
         without two such views."""
         voxel = self.config.objects.shape_voxel
-        views = [(keyframe.T_map_cam, self.of(keyframe.frame_index, object_map.object_id))
-                 for keyframe in object_map.keyframes]
-        views = [view for view in views if view[1] is not None and len(view[1].points)][-SELF_TEXTURE_VIEWS:]
+        views = [view for view in self._views(object_map) if len(view[1].points)][-SELF_TEXTURE_VIEWS:]
         agreements = []
         for k, (T_model_camera, sample) in enumerate(views):
             others = build_model([view for j, view in enumerate(views) if j != k], voxel)

@@ -57,7 +57,7 @@ def reidentify_by_shape(state: SceneState, ctx: FrameContext, group: list[int], 
     (synth_two_sim s5, frame 18: 1 draw in 40 missed a cylinder that the others found, and
     the cylinder started a second map). Only the
     alignments are drawn again: the region's surface and the lost objects' models are computed
-    once, their own views' texture agreement once a frame (``ctx.self_textures``). An object
+    once (their own views' texture agreement is kept by ``state.surfaces``). An object
     is not tried for a region larger than it can be (:func:`could_hold`): a person walking by
     is no lost box, and aligning a large surface is what costs. A frame runs at most
     ``objects.shape_alignments_per_frame`` (region, object) alignments (``ctx.surface_alignments``
@@ -86,7 +86,7 @@ def reidentify_by_shape(state: SceneState, ctx: FrameContext, group: list[int], 
         if not affordable:
             return False
         ctx.surface_alignments += len(affordable)
-        if align_to_lost_objects(state, ctx, group, group_points, region, affordable, ctx.self_textures, outcomes):
+        if align_to_lost_objects(state, ctx, group, group_points, region, affordable, outcomes):
             if attempt:
                 logger.debug("frame %d: region %s found by surface alignment at attempt %d", frame.index, group,
                              attempt + 1)
@@ -103,10 +103,9 @@ def could_hold(model: SurfaceModel, region: SurfaceModel) -> bool:
 
 def align_to_lost_objects(state: SceneState, ctx: FrameContext, group: list[int], group_points: np.ndarray,
                           region: SurfaceModel, models: list[tuple[ObjectMap, SurfaceModel]],
-                          own_textures: dict[int, float | None], outcomes: dict[int, ObjectTrackingResult]) -> bool:
+                          outcomes: dict[int, ObjectTrackingResult]) -> bool:
     """The region's surface (``region``, camera frame) aligned to each lost object's surface
-    model (``models``; ``own_textures`` caches ``ObjectSurfaces.self_texture`` per map)
-    (:func:`~jsr.pipeline.surface_alignment.align_surfaces`); each alignment is a pose prediction
+    model (``models``) (:func:`~jsr.pipeline.surface_alignment.align_surfaces`); each alignment is a pose prediction
     for prediction-based matching of the region's keypoints with the object's landmarks
     (``objects.shape_radius_px``). The registration with most inliers wins if it succeeds
     with at least ``ransac.min_inliers`` inliers and stays near its prediction (20 cm, 30
@@ -154,11 +153,7 @@ def align_to_lost_objects(state: SceneState, ctx: FrameContext, group: list[int]
                 best = (object_map, T_o_c, matched, result)
     surface_only = []
 
-    def own_texture(object_map: ObjectMap) -> float | None:
-        """``ObjectSurfaces.self_texture``, computed once per map here (model builds, ~0.3 s)."""
-        if object_map.object_id not in own_textures:
-            own_textures[object_map.object_id] = state.surfaces.self_texture(object_map)
-        return own_textures[object_map.object_id]
+    own_texture = state.surfaces.self_texture  # (kept while the object's views stay the same)
 
     # this frame's depth, camera frame: would a model placed by an alignment be seen through?
     view = DepthView(np.asarray(frame.depth[::SURFACE_STRIDE, ::SURFACE_STRIDE], dtype=np.float32),

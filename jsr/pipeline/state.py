@@ -246,8 +246,7 @@ class FrameContext:
     dissolved candidate just gave to the static map (-1 elsewhere; None: no such), and
     ``force_static_keyframe`` makes this frame a static keyframe so that they are linked to it.
     ``adjacency`` and ``free_space`` are computed when first needed (:meth:`segment_adjacency`,
-    :meth:`free_space_counts`); ``self_textures`` too, by the surface re-identification (each
-    object's own views' texture agreement, ~0.3 s a map).
+    :meth:`free_space_counts`).
     """
 
     frame: Frame
@@ -266,7 +265,6 @@ class FrameContext:
     adjacency: np.ndarray | None = None  # (E, 2) depth-adjacent segment pairs
     free_space: tuple[np.ndarray, np.ndarray] | None = None  # (S,) violations, (S,) consistent
     measured_free_space: tuple[np.ndarray, np.ndarray] | None = None  # the same, measured_only
-    self_textures: dict[int, float | None] = field(default_factory=dict)  # ObjectSurfaces.self_texture by map id
     surface_alignments: int = 0  # (region, lost object) surface alignments run (objects.shape_alignments_per_frame)
 
     @property

@@ -68,6 +68,16 @@ def _features(model: SurfaceModel, voxel: float) -> np.ndarray:
     return features
 
 
+def _model_at(model: SurfaceModel, voxel: float, thin: bool) -> tuple[SurfaceModel, np.ndarray]:
+    """``model`` (thinned to ``voxel`` if ``thin``) and its :func:`_features`, kept in
+    ``model.derived``: a lost object's model is aligned to the moving regions of many frames."""
+    key = ("aligned at", voxel, thin)
+    if key not in model.derived:
+        at = thinned(model, voxel) if thin else model
+        model.derived[key] = (at, _features(at, voxel))
+    return model.derived[key]
+
+
 def _kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Batched least-squares rotations and translations: ``source``, ``target`` ``(B, K, 3)``
     -> ``R`` ``(B, 3, 3)``, ``t`` ``(B, 3)`` with ``target ~ R @ source + t``."""
@@ -213,10 +223,11 @@ def align_surfaces(region: SurfaceModel, model: SurfaceModel, voxel: float, rng:
     if len(region.points) < 20 or len(model.points) < 20:
         return []
     coarser = alignment_voxel(len(region.points), len(model.points), voxel)
-    if coarser > voxel:  # (at their own voxel thinning keeps every point)
-        voxel = coarser
-        region, model = thinned(region, voxel), thinned(model, voxel)
-    region_features, model_features = _features(region, voxel), _features(model, voxel)
+    thin = coarser > voxel  # (at their own voxel thinning keeps every point)
+    voxel = coarser
+    region = thinned(region, voxel) if thin else region
+    region_features = _features(region, voxel)
+    model, model_features = _model_at(model, voxel, thin)
     valid_region = np.flatnonzero(region_features.any(axis=1))
     valid_model = np.flatnonzero(model_features.any(axis=1))
     if len(valid_region) < 3 or len(valid_model) < 3:

@@ -12,7 +12,7 @@ map's frame. Transforms are ``(4, 4)`` and map points of the right-hand frame in
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -31,11 +31,14 @@ class SurfaceSample:
 @dataclass
 class SurfaceModel:
     """An object's surface in its map frame: ``points`` ``(N, 3)``, ``normals`` ``(N, 3)``
-    (unit, facing the cameras that saw them), ``colors`` ``(N, 3)`` float in [0, 1]."""
+    (unit, facing the cameras that saw them), ``colors`` ``(N, 3)`` float in [0, 1].
+    ``derived`` keeps what is computed from these arrays (which are never changed in place) for
+    reuse, e.g. the descriptors of surface alignment by voxel."""
 
     points: np.ndarray
     normals: np.ndarray
     colors: np.ndarray
+    derived: dict = field(default_factory=dict, compare=False, repr=False)
 
 
 def sample_surface(depth: np.ndarray, color: np.ndarray, mask: np.ndarray, intrinsics, stride: int,
