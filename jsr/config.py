@@ -218,6 +218,8 @@ class DenseConfig:
     iterations: int = 5
     min_overlap: float = 0.5
     min_normal_spread: float = 0.01
+    trust_within: float = 0.02
+    trust_keyframes: int = 5
 
 
 @dataclass
@@ -400,6 +402,8 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "dense.iterations": (lambda v: v >= 1, "at least 1"),
     "dense.min_overlap": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "dense.min_normal_spread": (lambda v: 0 <= v <= 1 / 3, "in [0, 1/3]"),
+    "dense.trust_within": (lambda v: v >= 0, "at least 0 (0: the depth is always trusted)"),
+    "dense.trust_keyframes": (lambda v: v >= 1, "at least 1"),
     "loop_closure.min_keyframe_gap": (lambda v: v >= 1, "at least 1"),
     "loop_closure.candidates": (lambda v: v >= 1, "at least 1"),
     "loop_closure.min_inliers": (lambda v: v >= 3, "at least 3"),

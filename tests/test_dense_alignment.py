@@ -11,8 +11,8 @@ from scipy.spatial.transform import Rotation
 from jsr.config import load_config
 from jsr.geometry import invert_transform, make_transform, rotation_angle
 from jsr.io.camera import CameraIntrinsics
-from jsr.pipeline.dense_alignment import (align_depth, carries, depth_surface, depth_target, frame_samples,
-                                          point_to_plane_terms)
+from jsr.pipeline.dense_alignment import (align_depth, carries, depth_surface, depth_target, disagreement,
+                                          frame_samples, point_to_plane_terms, trusted)
 
 INTRINSICS = CameraIntrinsics(fx=240.0, fy=240.0, cx=159.5, cy=119.5, width=320, height=240)
 CONFIG = load_config(None)
@@ -91,11 +91,17 @@ def test_keyframe_surface_normals_fit_the_planes_and_face_the_camera():
     assert np.all(half.points[:, 0] / half.points[:, 2] * INTRINSICS.fx + INTRINSICS.cx >= 159.0)
 
 
+def two_keyframes_of_the_room(rng):
+    """The room's noisy depth from the origin and from a view 16 cm and 6 degrees away, as a
+    :class:`DepthTarget`."""
+    keyframes = [np.eye(4), moved(np.eye(4), 6.0, [0, 1, 0], [0.15, 0.0, 0.05])]
+    return depth_target([(T, depth_surface(render_depth(room(), T, rng), np.ones((240, 320), bool), INTRINSICS,
+                                           CONFIG.dense, CONFIG.noise)) for T in keyframes])
+
+
 def test_depth_alone_recovers_a_pose_predicted_centimetres_off():
     rng = np.random.default_rng(0)
-    keyframes = [np.eye(4), moved(np.eye(4), 6.0, [0, 1, 0], [0.15, 0.0, 0.05])]
-    target = depth_target([(T, depth_surface(render_depth(room(), T, rng), np.ones((240, 320), bool), INTRINSICS,
-                                             CONFIG.dense, CONFIG.noise)) for T in keyframes])
+    target = two_keyframes_of_the_room(rng)
     truth = moved(np.eye(4), 4.0, [0.3, 1, 0], [0.08, -0.03, 0.1])
     source, sigma = frame_samples(render_depth(room(), truth, rng), None, INTRINSICS, CONFIG.dense, CONFIG.noise)
     predicted = moved(truth, 1.5, [1, 0, 0.5], [0.02, 0.015, -0.02])
@@ -155,3 +161,30 @@ def test_features_and_depth_together_fix_what_depth_alone_leaves_free():
     fit = align_depth(source, sigma, target, start, CONFIG.dense, features)
     translation, degrees = pose_error(fit.pose, truth)
     assert translation < 0.002 and degrees < 0.1
+
+
+def test_disagreement_is_how_far_the_depth_moves_a_feature_pose():
+    """A keyframe's features placed it exactly: its depth alone hardly moves it (the noise).
+    Placed 3 cm off: the depth moves its samples back by about that. On a single wall the depth
+    cannot place a frame, and says nothing."""
+    rng = np.random.default_rng(1)
+    target = two_keyframes_of_the_room(rng)
+    truth = moved(np.eye(4), 3.0, [0.3, 1, 0], [0.06, -0.02, 0.08])
+    source, sigma = frame_samples(render_depth(room(), truth, rng), None, INTRINSICS, CONFIG.dense, CONFIG.noise)
+    assert disagreement(source, sigma, target, truth, CONFIG.dense) < 0.003
+    off = moved(truth, 0.0, [1, 0, 0], [0.03, 0.0, 0.0])
+    assert abs(disagreement(source, sigma, target, off, CONFIG.dense) - 0.03) < 0.005
+    wall = [quad([-3, -2, 2.0], [6, 0, 0], [0, 4, 0])]
+    wall_target = depth_target([(np.eye(4), depth_surface(render_depth(wall, np.eye(4), rng), np.ones((240, 320), bool),
+                                                          INTRINSICS, CONFIG.dense, CONFIG.noise))])
+    wall_source, wall_sigma = frame_samples(render_depth(wall, truth, rng), None, INTRINSICS, CONFIG.dense,
+                                            CONFIG.noise)
+    assert disagreement(wall_source, wall_sigma, wall_target, truth, CONFIG.dense) is None
+
+
+def test_the_depth_is_trusted_by_the_median_of_the_latest_disagreements():
+    config = load_config(None, ["dense.trust_within=0.02", "dense.trust_keyframes=3"]).dense
+    assert not trusted([], config)  # nothing measured yet
+    assert trusted([0.01, 0.05, 0.015], config)
+    assert not trusted([0.01, 0.05, 0.015, 0.03], config)  # the latest three: median 0.03
+    assert trusted([0.09], load_config(None, ["dense.trust_within=0"]).dense)  # 0: always

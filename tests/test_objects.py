@@ -1180,7 +1180,7 @@ def _frame_context(measurements, **computed) -> FrameContext:
     per-frame values (``adjacency``, ``free_space``) already computed."""
     return FrameContext(frame=SimpleNamespace(depth=None), measurements=measurements,
                         report=SimpleNamespace(T_w_c=np.eye(4)),
-                        timings={}, static=SimpleNamespace(bridged=True), **computed)
+                        timings={}, static=SimpleNamespace(bridged=True, by_depth=False), **computed)
 
 @pytest.mark.parametrize("violations, grown", [(20, [0, 1]), (5, [0])])
 def test_face_with_few_3d_features_grows_into_its_object_when_it_moved_in(violations, grown):
@@ -1609,7 +1609,8 @@ def test_segment_of_outliers_grows_only_if_its_landmarks_left(monkeypatch, in_pl
                                    frame_index=5)
     ctx = _frame_context(measurements, adjacency=np.array([[0, 1]]),
                          free_space=(np.array([0, 0]), np.array([0, 60])))  # segment 1: a surface seen before
-    ctx.static = SimpleNamespace(bridged=False, matched=SimpleNamespace(point_measurements=np.arange(20, 40)))
+    ctx.static = SimpleNamespace(bridged=False, by_depth=False,
+                                 matched=SimpleNamespace(point_measurements=np.arange(20, 40)))
     assert grow(reconstructor.state, ctx, [0], np.zeros(40, dtype=bool), np.array([1, 0])) == grown
     assert asked == [1]
     reconstructor.close()

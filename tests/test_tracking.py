@@ -125,6 +125,12 @@ def test_depth_carries_frames_whose_features_fail(static_sequence, tmp_path):
         relative_truth = np.linalg.inv(truth_at(reports[0])) @ truth_at(reports[index])
         assert np.linalg.norm(reports[index].T_w_c[:3, 3] - relative_truth[:3, 3]) < 0.01
     assert ate(reports, sequence) < 0.01
+    # the keyframes before them measured how far the depth moves a feature pose: within the bound
+    measured = reconstructor.state.depth_disagreements
+    assert measured and max(measured) < 0.015
+    # a depth that never agreed that well with the features is not trusted: they are lost
+    _, distrusted = track(sequence, ["dense.enabled=true", "dense.trust_within=0.0001"])
+    assert not any(distrusted[i].tracked or distrusted[i].by_depth for i in blanked)
 
 
 def test_depth_refinement_keeps_the_camera_on_depth_that_fits_its_noise_model(static_sequence):
@@ -161,9 +167,10 @@ def test_dense_samples_keep_away_from_what_moved_in_the_previous_frame():
 
 def test_depth_carries_poorly_supported_frames_when_asked(static_sequence):
     """dense.carry_below_inliers: a frame with fewer feature inliers than this is placed by its
-    depth together with those inliers; asking more than any frame has, every frame is."""
+    depth together with those inliers; asking more than any frame has, every frame is (the
+    depth trusted from the start: nothing carried, no keyframe measures it)."""
     sequence = open_sequence(static_sequence, max_frames=12)
-    _, reports = track(sequence, ["dense.enabled=true", "dense.carry_below_inliers=100000"])
+    _, reports = track(sequence, ["dense.enabled=true", "dense.carry_below_inliers=100000", "dense.trust_within=0"])
     assert all(r.tracked for r in reports)
     assert all(r.by_depth for r in reports[1:])
     assert ate(reports, sequence) < 0.01

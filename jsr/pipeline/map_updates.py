@@ -13,7 +13,7 @@ import numpy as np
 from jsr.config import Config
 from jsr.pipeline.association import (MatchedFrame, inlier_landmarks, inlier_plane_landmarks, sample_colors)
 from jsr.pipeline.classify import segment_of_planes
-from jsr.pipeline.dense_alignment import depth_surface
+from jsr.pipeline.dense_alignment import depth_surface, depth_target, disagreement, frame_samples
 from jsr.pipeline.loop_closure import find_loop
 from jsr.pipeline.maps import Candidacy, Keyframe, ObjectMap
 from jsr.pipeline.measurements import FrameMeasurements, PointMeasurements
@@ -203,10 +203,34 @@ def remember_depth(state: SceneState, ctx: FrameContext) -> None:
     if free_space:
         state.free_space.remember(keyframes[-1], ctx.frame.depth, unknown)
     if state.config.dense.enabled:
+        measure_disagreement(state, ctx, ~unknown)
         for old in keyframes[-state.config.dense.keyframes - 1:-state.config.dense.keyframes]:
             state.depth_surfaces.pop(old.keyframe_id, None)  # only the latest are aligned to
         state.depth_surfaces[keyframes[-1].keyframe_id] = depth_surface(
             ctx.frame.depth, ~unknown, state.intrinsics, state.config.dense, state.config.noise)
+
+
+def measure_disagreement(state: SceneState, ctx: FrameContext, static_pixels: np.ndarray) -> None:
+    """For a new static keyframe that its features placed (not its depth, not a bridge to the
+    previous frame): how far its depth alone, on ``static_pixels`` ``(H, W)`` bool, moves it
+    from that pose against the previous keyframes' depth
+    (:func:`~jsr.pipeline.dense_alignment.disagreement`), kept in ``state.depth_disagreements``
+    (the evidence whether the depth is trusted, :func:`~jsr.pipeline.dense_alignment.trusted`)."""
+    static, config = ctx.static, state.config.dense
+    if static is None or static.bridged or static.by_depth:
+        return
+    previous = state.static_map.keyframes[-config.keyframes - 1:-1]
+    target = depth_target([(k.T_map_cam, state.depth_surfaces[k.keyframe_id]) for k in previous
+                           if k.keyframe_id in state.depth_surfaces])
+    if target is None:
+        return
+    source, source_sigma = frame_samples(ctx.frame.depth, static_pixels, state.intrinsics, config, state.config.noise)
+    moved = disagreement(source, source_sigma, target, static.result.transformation, config)
+    if moved is None:
+        return
+    state.depth_disagreements.append(moved)
+    logger.debug("frame %d: its depth alone moves the keyframe %.1f cm from its features' pose", ctx.frame.index,
+                 100 * moved)
 
 
 def not_static_pixels(state: SceneState, ctx: FrameContext) -> np.ndarray:

@@ -85,11 +85,13 @@ class FrameReport:
 @dataclass
 class StaticRegistration:
     """The static map's registration of one frame (``matched`` is against the map, or against
-    the previous frame when ``bridged``)."""
+    the previous frame when ``bridged``; ``by_depth``: the frame's depth placed it, its
+    features failed or were few)."""
 
     matched: MatchedFrame
     result: RegistrationResult
     bridged: bool = False
+    by_depth: bool = False
 
 
 @dataclass
@@ -186,7 +188,8 @@ class SceneState:
     its extent). ``free_space``: subsampled depth of the latest static keyframes (free-space
     tests). ``merged_into``: object id -> the id of the map it was merged into. ``places``: the
     static keyframes' appearance, for loop closure. ``depth_surfaces``: the latest static
-    keyframes' sampled static depth, for the dense term of tracking.
+    keyframes' sampled static depth, for the dense term of tracking, and ``depth_disagreements``
+    how far their depth alone moved them from their features' pose (whether the depth is trusted).
     ``focal_length``: for image-space refinement (``ransac.refinement: image``), else None.
     """
 
@@ -212,6 +215,7 @@ class SceneState:
     segment_index: SegmentIndex = field(default_factory=SegmentIndex)
     places: PlaceIndex = field(default_factory=PlaceIndex)
     depth_surfaces: dict[int, DepthSurface] = field(default_factory=dict)  # static keyframe id -> its sampled depth (the latest dense.keyframes)
+    depth_disagreements: list[float] = field(default_factory=list)  # m, per static keyframe placed by its features (dense_alignment.disagreement)
 
     @property
     def maps(self) -> list[Map]:
@@ -274,9 +278,10 @@ class FrameContext:
 
     @property
     def registered(self) -> bool:
-        """Whether the static registration matched this frame against the map itself (not
-        bridged to the previous frame): only then do its outliers say anything about motion."""
-        return self.static is not None and not self.static.bridged
+        """Whether the static registration's features placed this frame against the map itself
+        (not bridged to the previous frame, not carried by its depth): only then do its
+        outliers say anything about motion."""
+        return self.static is not None and not self.static.bridged and not self.static.by_depth
 
     def static_inliers(self) -> tuple[np.ndarray, np.ndarray]:
         """``(N,)`` and ``(P,)`` bool: point and plane measurements that are inliers of the

@@ -16,7 +16,7 @@ import numpy as np
 from jsr.pipeline.association import match_frame_to_map
 from jsr.pipeline.loop_closure import recognised_landmarks
 from jsr.pipeline.maps import Map
-from jsr.pipeline.dense_alignment import align_depth, carries, depth_target, frame_samples
+from jsr.pipeline.dense_alignment import align_depth, carries, depth_target, frame_samples, trusted
 from jsr.pipeline.pose_refinement import image_space_terms
 from jsr.pipeline.pose_scoring import RegistrationProblem
 from jsr.pipeline.correspondences import RegistrationResult
@@ -122,7 +122,7 @@ def register_static(state: SceneState, ctx: FrameContext) -> None:
     camera.last_pose = pose
     camera.lost = False
     camera.previous = (measurements, pose)
-    ctx.static = StaticRegistration(matched, result, bridged)
+    ctx.static = StaticRegistration(matched, result, bridged, report.by_depth)
 
 
 def with_depth(state: SceneState, ctx: FrameContext, result: RegistrationResult,
@@ -140,11 +140,17 @@ def with_depth(state: SceneState, ctx: FrameContext, result: RegistrationResult,
       beyond, depth and features disagree (the sensor's depth distortion, a surface that
       moved) and the features are kept.
 
-    The result's inliers are the correspondences that agree with the new pose."""
+    Either only while the depth is trusted
+    (:func:`~jsr.pipeline.dense_alignment.trusted`: it agreed with the features at the latest
+    keyframes). The result's inliers are the correspondences that agree with the new pose."""
     config = state.config
     weak = not result.success or result.num_inliers < config.dense.carry_below_inliers
     start = result.transformation if result.success else predicted
     if start is None or not (weak or config.dense.refine):
+        return None
+    if not trusted(state.depth_disagreements, config.dense):
+        logger.debug("frame %d: the depth is not trusted (it disagreed with the features at the latest keyframes)",
+                     ctx.frame.index)
         return None
     recent = state.static_map.keyframes[-config.dense.keyframes:]
     target = depth_target([(k.T_map_cam, state.depth_surfaces[k.keyframe_id]) for k in recent
