@@ -130,6 +130,12 @@ def depth_target(surfaces: list[tuple[np.ndarray, DepthSurface]]) -> DepthTarget
     return DepthTarget(points, normals, sigma, cKDTree(points))
 
 
+def keyframes_target(keyframes: list, surfaces: dict[int, DepthSurface]) -> DepthTarget | None:
+    """:func:`depth_target` of those of ``keyframes`` (static map keyframes) that kept a surface
+    (``surfaces`` by keyframe id), placed by their current poses."""
+    return depth_target([(k.T_map_cam, surfaces[k.keyframe_id]) for k in keyframes if k.keyframe_id in surfaces])
+
+
 def frame_samples(depth: np.ndarray, keep: np.ndarray | None, intrinsics: CameraIntrinsics, config: DenseConfig,
                   noise: NoiseConfig) -> tuple[np.ndarray, np.ndarray]:
     """The frame's samples to align: ``(N, 3)`` camera-frame points and ``(N,)`` axial noise."""

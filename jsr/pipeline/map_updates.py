@@ -13,7 +13,7 @@ import numpy as np
 from jsr.config import Config
 from jsr.pipeline.association import (MatchedFrame, inlier_landmarks, inlier_plane_landmarks, sample_colors)
 from jsr.pipeline.classify import segment_of_planes
-from jsr.pipeline.dense_alignment import depth_surface, depth_target, disagreement, frame_samples
+from jsr.pipeline.dense_alignment import depth_surface, disagreement, frame_samples, keyframes_target
 from jsr.pipeline.loop_closure import find_loop
 from jsr.pipeline.maps import Candidacy, Keyframe, ObjectMap
 from jsr.pipeline.measurements import FrameMeasurements, PointMeasurements
@@ -219,9 +219,7 @@ def measure_disagreement(state: SceneState, ctx: FrameContext, static_pixels: np
     static, config = ctx.static, state.config.dense
     if static is None or static.bridged or static.by_depth:
         return
-    previous = state.static_map.keyframes[-config.keyframes - 1:-1]
-    target = depth_target([(k.T_map_cam, state.depth_surfaces[k.keyframe_id]) for k in previous
-                           if k.keyframe_id in state.depth_surfaces])
+    target = keyframes_target(state.static_map.keyframes[-config.keyframes - 1:-1], state.depth_surfaces)
     if target is None:
         return
     source, source_sigma = frame_samples(ctx.frame.depth, static_pixels, state.intrinsics, config, state.config.noise)

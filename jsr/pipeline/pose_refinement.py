@@ -239,8 +239,8 @@ def _left_jacobian_inverse(rotvec: np.ndarray) -> np.ndarray:
 
 
 def minimise_huber(linearised: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
-                    rotation: np.ndarray, translation: np.ndarray, scale: float,
-                    max_iterations: int) -> tuple[np.ndarray, np.ndarray] | None:
+                   rotation: np.ndarray, translation: np.ndarray, scale: float,
+                   max_iterations: int) -> tuple[np.ndarray, np.ndarray] | None:
     """Pose ``(rotation (3, 3), translation (3,))`` minimising the Huber cost (``scale``) of
     ``linearised(rotation, translation) -> (residuals (M,), jacobian (M, 6))``: Levenberg-
     Marquardt on iteratively reweighted normal equations (the curvature model of

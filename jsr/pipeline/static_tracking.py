@@ -16,7 +16,7 @@ import numpy as np
 from jsr.pipeline.association import match_frame_to_map
 from jsr.pipeline.loop_closure import recognised_landmarks
 from jsr.pipeline.maps import Map
-from jsr.pipeline.dense_alignment import align_depth, carries, depth_target, frame_samples, trusted
+from jsr.pipeline.dense_alignment import align_depth, carries, frame_samples, keyframes_target, trusted
 from jsr.pipeline.pose_refinement import image_space_terms
 from jsr.pipeline.pose_scoring import RegistrationProblem
 from jsr.pipeline.correspondences import RegistrationResult
@@ -152,9 +152,7 @@ def with_depth(state: SceneState, ctx: FrameContext, result: RegistrationResult,
         logger.debug("frame %d: the depth is not trusted (it disagreed with the features at the latest keyframes)",
                      ctx.frame.index)
         return None
-    recent = state.static_map.keyframes[-config.dense.keyframes:]
-    target = depth_target([(k.T_map_cam, state.depth_surfaces[k.keyframe_id]) for k in recent
-                           if k.keyframe_id in state.depth_surfaces])
+    target = keyframes_target(state.static_map.keyframes[-config.dense.keyframes:], state.depth_surfaces)
     if target is None:
         return None
     source, source_sigma = frame_samples(ctx.frame.depth, static_pixels(state), state.intrinsics, config.dense,
