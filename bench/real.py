@@ -16,8 +16,7 @@ per sequence, over the seeds (mean, and the worst where it matters):
   match a true object (``bench/objects.py`` matching: the true object their masks overlap
   most), and per true moving object the detection delay (frames from its first motion to the
   first map created on it), its pose error after removing the constant frame offset (cm / deg,
-  pooled over its maps) and whether exactly one map followed it (true moving objects seen over
-  2000 pixels after their first motion only); on a static sequence, the
+  pooled over its maps) and whether exactly one map followed it; on a static sequence, the
   object maps kept at the end (target: none) and the candidates confirmed on the way;
 * mask precision and recall once moved (pixels given to objects against the labels, from each
   object's first motion on);
@@ -99,10 +98,7 @@ def summarise(name: str, runs: list[dict]) -> dict:
            "confirmed": [len(r["confirmed"]) for r in runs],
            "loops": [r.get("loops_closed", 0) for r in runs]}
     if not static:
-        # an object never seen over 2000 pixels once it moved (a composite's object behind the
-        # scene or far off: bonn_s3_two_jump of the second set, 800 pixels) is not asked for
-        objects = [o for r in runs for o in r["objects"]
-                   if o["true_id"] in r["true_moving_objects"] and o["visible_frames"] > 0]
+        objects = [o for r in runs for o in r["objects"] if o["true_id"] in r["true_moving_objects"]]
         row["one_map_each"] = sum(len(o["maps"]) == 1 for o in objects), len(objects)
         row["spurious"] = [len(r["maps_spurious"]) for r in runs]
         delays = [o["detection_delay"] for o in objects]
