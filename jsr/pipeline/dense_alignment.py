@@ -260,10 +260,6 @@ def carries(fit: DenseFit | None, config: DenseConfig) -> bool:
     return True
 
 
-__all__ = ["DenseFit", "DepthSurface", "DepthTarget", "align_depth", "carries", "depth_surface", "depth_target",
-           "frame_samples", "normal_spread"]
-
-
 def disagreement(source: np.ndarray, source_sigma: np.ndarray, target: DepthTarget, feature_pose: np.ndarray,
                  config: DenseConfig) -> float | None:
     """How far the depth alone moves a frame that its features placed at ``feature_pose``
@@ -291,3 +287,6 @@ def trusted(disagreements: list[float], config: DenseConfig) -> bool:
     latest = disagreements[-config.trust_keyframes:]
     return bool(latest) and float(np.median(latest)) <= config.trust_within
 
+
+__all__ = ["DenseFit", "DepthSurface", "DepthTarget", "align_depth", "carries", "depth_surface", "depth_target",
+           "disagreement", "frame_samples", "keyframes_target", "normal_spread", "trusted"]
