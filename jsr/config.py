@@ -137,18 +137,14 @@ class DetectionConfig:
     significance: float = 0.01
     require_rigid_motion: bool = True
     free_space_veto_motion: float = 0.06
-    vacancy_veto: bool = True
     in_place_turn_degrees: float = 10.0
     in_place_turn_memory_frames: int = 3
     min_motion: float = 0.03
     min_motion_degrees: float = 3.0
     displaced_share: float = 0.8
     displaced_free_space_share: float = 0.5
-    where_lost: bool = True
     merge_gap_pixels: int = 2
-    split_motion_distance: float = 0.06
     min_object_points: int = 15
-    partial_outlier_ratio: float = 0.3
     confirm_frames: int = 3
     confirm_window: int = 6
     confirm_significance: float = 0.001
@@ -174,7 +170,6 @@ class ObjectsConfig:
     retire_object_matches: bool = True
     hold_back_suspects: bool = True
     hold_back_beside_moved: bool = True
-    retire_after_outliers: int = 0
     retire_after_vacated: int = 3
     vacated_cluster_size: int = 5
     vacated_cluster_radius: float = 0.15
@@ -344,7 +339,6 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "keyframes.rotation_degrees": (lambda v: v >= 0, "at least 0"),
     "keyframes.static_min_inliers": (lambda v: v >= 0, "at least 0"),
     "detection.segment_outlier_ratio": (lambda v: 0 < v <= 1, "in (0, 1]"),
-    "detection.partial_outlier_ratio": (lambda v: 0 <= v <= 1, "in [0, 1] (0: off)"),
     "detection.min_segment_features": (lambda v: v >= 1, "at least 1"),
     "detection.merge_gap_pixels": (lambda v: v >= 0, "at least 0"),
     "detection.min_motion": (lambda v: v >= 0, "at least 0"),
@@ -357,7 +351,6 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "detection.dynamic_margin_px": (lambda v: v >= 0, "at least 0"),
     "objects.dormant_after_frames": (lambda v: v >= 1, "at least 1"),
     "objects.reidentify_maps": (lambda v: v >= 1, "at least 1"),
-    "objects.retire_after_outliers": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.retire_after_vacated": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.vacated_cluster_size": (lambda v: v >= 0, "at least 0 (0: no cluster needed)"),
     "objects.vacated_cluster_radius": (lambda v: v > 0, "positive"),
@@ -530,13 +523,6 @@ def _check_relations(config: Config) -> None:
     """Keys whose valid values depend on another key (each key alone is checked on reading)."""
     if config.input.min_depth >= config.input.max_depth:
         raise ConfigError("config key 'input.min_depth' must be smaller than 'input.max_depth'")
-    detection = config.detection
-    # a partial ratio at or above the full one would leave no segment between them: the rule
-    # would be off without saying so
-    if 0 < detection.partial_outlier_ratio >= detection.segment_outlier_ratio:
-        raise ConfigError(f"config key 'detection.partial_outlier_ratio' ({detection.partial_outlier_ratio}) must be "
-                          f"below 'detection.segment_outlier_ratio' ({detection.segment_outlier_ratio}), or 0 to "
-                          "turn the whole-segment turn test off")
 
 
 def config_to_yaml(config: Config) -> str:

@@ -81,16 +81,6 @@ def test_bad_overrides():
         load_config(None, ["ransac=5"])
 
 
-def test_partial_outlier_ratio_must_stay_below_the_full_ratio():
-    with pytest.raises(ConfigError, match="partial_outlier_ratio.*below.*segment_outlier_ratio"):
-        load_config(None, ["detection.partial_outlier_ratio=0.6"])
-    with pytest.raises(ConfigError, match="partial_outlier_ratio"):
-        load_config(None, ["detection.segment_outlier_ratio=0.25"])  # below the default partial ratio 0.3
-    assert load_config(None, ["detection.partial_outlier_ratio=0", "detection.segment_outlier_ratio=0.25"]) \
-        .detection.partial_outlier_ratio == 0
-    assert load_config(None, ["detection.partial_outlier_ratio=0.59"]).detection.partial_outlier_ratio == 0.59
-
-
 def test_missing_config_file(tmp_path):
     with pytest.raises(ConfigError, match="does not exist"):
         load_config(tmp_path / "nope.yaml")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 
 import numpy as np
 import pytest
@@ -14,7 +13,6 @@ from jsr.pipeline.detection import (
     detect_moving_segments,
     displaced_landmark_groups,
     merge_adjacent_moving_segments,
-    partially_moving_segments,
     segment_adjacency_pairs,
     segment_outlier_stats,
 )
@@ -70,33 +68,6 @@ def test_detects_segments_with_high_outlier_ratio_and_enough_features():
     assert detect_moving_segments(segments, matched, inlier, DetectionConfig(0.6, 4, significance=1.0)) == [1, 2]
     assert detect_moving_segments(segments, matched, inlier, DetectionConfig(0.55, 5, significance=1.0)) == [1, 3]
     assert detect_moving_segments(segments, matched, inlier, DetectionConfig(0.85, 1, significance=1.0)) == [2]
-
-
-def test_partially_moving_segments_lie_between_the_two_ratios():
-    """detection.partial_outlier_ratio: segments with more outliers than it (and at least
-    min_segment_features of them) but not above segment_outlier_ratio are the candidates for
-    a whole-segment rigid turn; 0 turns them off."""
-    segments, matched, inlier = _four_segments()  # outlier ratios 0.1, 0.8, 1.0 (4 matched), 0.6
-    config = DetectionConfig(segment_outlier_ratio=0.6, min_segment_features=5, partial_outlier_ratio=0.3,
-                             significance=1.0)
-    assert partially_moving_segments(segments, matched, inlier, config) == [3]
-    # the lower bound is strict: segment 3's ratio is 0.6
-    assert partially_moving_segments(segments, matched, inlier, dataclasses.replace(
-        config, segment_outlier_ratio=0.7, partial_outlier_ratio=0.6)) == []
-    # measurements given to an object do not count: without 3 of its outliers segment 3 has 3 of 7
-    exclude = np.zeros(len(matched), dtype=bool)
-    exclude[30:33] = True
-    assert partially_moving_segments(segments, matched, inlier, config, exclude=exclude) == []
-    # 24 of 39 matches in the frame are outliers: 6 of 10 in segment 3 is chance
-    assert partially_moving_segments(segments, matched, inlier,
-                                     dataclasses.replace(config, significance=0.01)) == []
-    # segment 1 (0.8) is a candidate once the upper ratio is above it; segment 2 has 4 outliers only
-    assert partially_moving_segments(segments, matched, inlier, dataclasses.replace(
-        config, segment_outlier_ratio=0.9)) == [1, 3]
-    assert partially_moving_segments(segments, matched, inlier, dataclasses.replace(
-        config, min_segment_features=7)) == []
-    assert partially_moving_segments(segments, matched, inlier, dataclasses.replace(
-        config, partial_outlier_ratio=0.0)) == []
 
 
 def test_outliers_must_exceed_what_the_frame_outlier_ratio_explains():

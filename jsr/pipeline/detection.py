@@ -135,32 +135,6 @@ def detect_moving_segments(
     return ids
 
 
-def partially_moving_segments(
-    segments: Segments,
-    matched: np.ndarray,
-    inlier: np.ndarray,
-    config: DetectionConfig,
-    exclude: np.ndarray | None = None,
-) -> list[int]:
-    """Segments (ascending) with at least ``config.min_segment_features`` outliers whose
-    outlier ratio exceeds ``config.partial_outlier_ratio`` (strictly) but not
-    ``config.segment_outlier_ratio``, and more of them than the frame's outlier ratio makes
-    likely (``config.significance``, as in :func:`detect_moving_segments`), ignoring the
-    measurements in ``exclude``: an object that turned about an axis through it keeps the
-    features near the axis within the static inlier threshold. Such a segment moves only if
-    all its matched features agree on one rigid motion (left to the caller); a static one
-    with a few mismatches agrees on none but the static pose. Empty when the ratio is 0."""
-    if config.partial_outlier_ratio <= 0:
-        return []
-    stats = segment_outlier_stats(segments, matched, inlier, exclude)
-    partial = ((stats.outlier_ratio > config.partial_outlier_ratio)
-               & (stats.outlier_ratio <= config.segment_outlier_ratio)
-               & (stats.outliers >= config.min_segment_features))
-    if partial.any():
-        partial &= _beyond_chance(stats, matched, inlier, exclude, config)
-    return np.flatnonzero(partial).tolist()
-
-
 def segment_adjacency_pairs(label_image: np.ndarray, max_gap_pixels: int = 0) -> np.ndarray:
     """``(E, 2)`` unique pairs ``(a, b)``, ``a < b``, of segment labels whose pixels are at most
     ``max_gap_pixels + 1`` apart along both image axes (8-neighbours for a gap of 0).

@@ -68,7 +68,6 @@ class PointLandmarks:
         self._observations = _GrowableArray((), np.int64)
         self._colors = _GrowableArray((3,), np.uint8)
         self._active = _GrowableArray((), bool)
-        self._outlier_streak = _GrowableArray((), np.int64)
         self._seen_through = _GrowableArray((), np.int64)
 
     def __len__(self) -> int:
@@ -80,7 +79,6 @@ class PointLandmarks:
     observations = property(lambda self: self._observations.view)
     colors = property(lambda self: self._colors.view)
     active = property(lambda self: self._active.view)
-    outlier_streak = property(lambda self: self._outlier_streak.view)  # (L,) frames in a row matched as an outlier
     seen_through = property(lambda self: self._seen_through.view)  # (L,) frames in a row its surface was seen to be gone
 
     @property
@@ -95,7 +93,6 @@ class PointLandmarks:
         self._observations.extend(np.ones(len(ids), dtype=np.int64))
         self._colors.extend(colors)
         self._active.extend(np.ones(len(ids), dtype=bool))
-        self._outlier_streak.extend(np.zeros(len(ids), dtype=np.int64))
         self._seen_through.extend(np.zeros(len(ids), dtype=np.int64))
         return ids
 

@@ -5,8 +5,7 @@ poor in 3D points to start one, looked at closer in the next frames.
 
 The cues: segments mostly made of static-map outliers whose outliers agree on one rigid motion
 (:mod:`jsr.pipeline.region_motion`), segments in space the static keyframes saw empty
-(:mod:`jsr.pipeline.free_space`), segments whose static landmarks all went missing at once, and
-where an object this frame lost stood a frame ago.
+(:mod:`jsr.pipeline.free_space`) and segments whose static landmarks all went missing at once.
 """
 
 from __future__ import annotations
@@ -16,14 +15,13 @@ import logging
 import numpy as np
 
 from jsr.geometry import invert_transform, transform_points
-from jsr.pipeline.detection import (detect_moving_segments, displaced_landmark_groups, merge_adjacent_moving_segments,
-                                    partially_moving_segments)
+from jsr.pipeline.detection import detect_moving_segments, displaced_landmark_groups, merge_adjacent_moving_segments
 from jsr.pipeline.free_space import depth_at_projections
 from jsr.pipeline.map_updates import start_object
 from jsr.pipeline.measurements import FrameMeasurements
 from jsr.pipeline.ownership import pixel_box
 from jsr.pipeline.region_growth import UNSUPPORTED_STATIC_SHARE, grow
-from jsr.pipeline.region_motion import mostly_in_place, not_in_place, rigidly_moved, split_by_motion
+from jsr.pipeline.region_motion import mostly_in_place, not_in_place, rigidly_moved
 from jsr.pipeline.correspondences import depth_thresholds
 from jsr.pipeline.reidentification import reidentify
 from jsr.pipeline.state import DYNAMIC, FrameContext, SceneState
@@ -36,12 +34,12 @@ CANDIDATE_DETAIL_FRAMES = 3  # a moving region too poor in 3D points to start a 
 
 def detect_moving_regions(state: SceneState, ctx: FrameContext) -> None:
     """Section 2.1: segments mostly made of static-map outliers are moving regions; beyond the
-    paper, also segments in space the static keyframes saw empty, segments whose static
-    landmarks all went missing, and where an object this frame lost stood a frame ago. Each
-    group of touching moving segments is first registered against the existing object maps
-    (an object seen again, elsewhere, :func:`~jsr.pipeline.reidentification.reidentify`):
-    by features in every group, then by surface in the groups left, against the objects still
-    lost; a group none fits starts a new object map. Adds to ``ctx.assignment``, ``ctx.suspects`` and
+    paper, also segments in space the static keyframes saw empty and segments whose static
+    landmarks all went missing. Each group of touching moving segments is first registered
+    against the existing object maps (an object seen again, elsewhere,
+    :func:`~jsr.pipeline.reidentification.reidentify`): by features in every group, then by
+    surface in the groups left, against the objects still lost; a group none fits starts a new
+    object map. Adds to ``ctx.assignment``, ``ctx.suspects`` and
     the report's objects."""
     if not ctx.registered:
         return  # matched against the previous frame only: outliers say nothing about motion
@@ -55,29 +53,14 @@ def detect_moving_regions(state: SceneState, ctx: FrameContext) -> None:
     in_place = by_outliers
     by_outliers = not_in_place(state, ctx, by_outliers, inliers, keep_unknown=False)
     in_place = [s for s in in_place if s not in by_outliers]
-    # where an object this frame lost was a frame ago: that object, moved, whatever its outliers say
-    where_lost = where_just_lost(state, ctx, sorted(set(by_outliers) | set(in_place)))
-    if where_lost:
-        logger.debug("frame %d: segments %s lie where a just-lost object was", measurements.frame_index,
-                     where_lost)
     violations, consistent = ctx.free_space_counts(state)
     by_outliers = rigidly_moved(state, ctx, by_outliers, inliers)
     turn_degrees = config.detection.in_place_turn_degrees
     if turn_degrees > 0:
-        # An object turning about itself: one rigid turn of its region decides.
-        # Segments with an outlier ratio between detection.partial_outlier_ratio and
-        # detection.segment_outlier_ratio, when their matched features, inliers too, agree on
-        # it: the features near the axis stay within the inlier threshold, and the others
-        # moved too little for the in-place test to tell (synth_jump seed 9: a box turned 29
-        # degrees, 9 of its 17 matches inliers, 8 of 8 outliers "in place"; not detected for
-        # 10 frames).
-        partial = partially_moving_segments(segments, matched, inliers, config.detection, exclude=owned)
-        turned_whole = rigidly_moved(state, ctx, partial, inliers, with_inliers=True, min_turn_degrees=turn_degrees,
-                                     exclude=owned)
         # Segments of outliers that the in-place test found near where they were: it cannot
         # tell the object's own features from a look-alike's, the turn of their outliers can.
         turned_in_place = rigidly_moved(state, ctx, in_place, inliers, min_turn_degrees=turn_degrees)
-        by_outliers = sorted(set(by_outliers) | set(turned_whole) | set(turned_in_place))
+        by_outliers = sorted(set(by_outliers) | set(turned_in_place))
     by_free_space = free_space_segments(state, measurements, violations, consistent, inliers)
     by_free_space = not_in_place(state, ctx, by_free_space, inliers, keep_unknown=True)
     # The in-place veto, over each group of touching segments and over its outlier and its
@@ -94,12 +77,11 @@ def detect_moving_regions(state: SceneState, ctx: FrameContext) -> None:
         if not mostly_in_place(state, ctx, group, inliers, config.detection.min_segment_features, also=displaced):
             by_displacement.extend(group)
             displaced_in.update({segment: displaced for segment in group})
-    moving = sorted(set(by_outliers) | set(by_free_space) | set(by_displacement) | set(where_lost))
+    moving = sorted(set(by_outliers) | set(by_free_space) | set(by_displacement))
     moving = [s for s in moving if assignment.segment_owner[s] == 0]
     if not moving:
         return
     groups = merge_adjacent_moving_segments(segments, moving, config.detection.merge_gap_pixels)
-    groups = [part for group in groups for part in split_by_motion(config, measurements, ctx.motions, group, ctx.T_w_c)]
     by_id = {outcome.object_map.object_id: outcome for outcome in ctx.outcomes}
     unexplained = []  # (region, its point measurements) that no lost object's features explain
     for index, group in enumerate(groups):
@@ -185,26 +167,6 @@ def moved_as_before(state: SceneState, ctx: FrameContext, group: list[int]) -> b
     ctx.unexplained.add(owner)
     ctx.dynamic.extend(group)
     return True
-
-
-def where_just_lost(state: SceneState, ctx: FrameContext, candidates: list[int]) -> list[int]:
-    """The candidate segments at least half of whose pixels were, in the previous frame,
-    given to an object that this frame's registration lost: most likely that object,
-    moved (a jump that turned it so that most of its landmarks no longer match)."""
-    previous = state.memory.previous_mask
-    if not state.config.detection.where_lost or previous is None or not state.reports:
-        return []
-    measurements = ctx.measurements
-    tracked_before = set(state.reports[-1].objects_tracked)
-    lost_ids = [outcome.object_map.object_id for outcome in ctx.outcomes
-                if not outcome.success and outcome.object_map.object_id in tracked_before]
-    if not lost_ids:
-        return []
-    where = np.isin(previous, lost_ids)
-    labels = measurements.segments.label_image
-    total = np.maximum(np.asarray(measurements.segments.pixel_counts), 1)
-    inside = np.bincount(labels[where & (labels >= 0)], minlength=len(total))
-    return [segment for segment in candidates if inside[segment] >= 0.5 * total[segment]]
 
 
 def free_space_segments(state: SceneState, measurements: FrameMeasurements, violations: np.ndarray,

@@ -1,7 +1,7 @@
 """How a moving region moved: the rigid motion that its static-map outliers agree on, the
-tests that tell a real motion from a pose error or look-alike texture (the old place vacated,
-the outliers no longer found in place), the memory that confirms a turn over frames, and the
-split of touching regions that moved differently.
+tests that tell a real motion from a pose error or look-alike texture (a small motion of a
+surface seen there before, the outliers still found in place) and the memory that confirms a
+turn over frames.
 
 Caccamo et al. 2017 take a segment with many outliers as moving; beyond the paper, the outliers
 must agree on one rigid motion relative to the static scene (``detection.require_rigid_motion``).
@@ -15,12 +15,10 @@ import logging
 import numpy as np
 
 from jsr.config import Config
-from jsr.geometry import backproject_pixels, invert_transform, rotation_angle, transform_points
+from jsr.geometry import invert_transform, rotation_angle, transform_points
 from jsr.pipeline.detection import merge_adjacent_moving_segments
-from jsr.pipeline.free_space import FREE_SPACE_STRIDE, depth_at_projections
 from jsr.pipeline.matching import guided_match
-from jsr.pipeline.measurements import FrameMeasurements, Segments
-from jsr.pipeline.correspondences import depth_thresholds
+from jsr.pipeline.measurements import FrameMeasurements
 from jsr.pipeline.registration import register
 from jsr.pipeline.state import DetectionMemory, FrameContext, SceneState
 
@@ -29,21 +27,14 @@ logger = logging.getLogger(__name__)
 # two frames' rotations fitted to 5-15 points each differ by a few degrees (synth_two seed 3: 3.2)
 TURN_MEMORY_DEGREES_FACTOR = 2
 IN_PLACE_TURN_INLIER_FACTOR = 2  # overruling the in-place veto by one frame's rigid turn takes this many times the usual agreeing outliers (two frames: see detection.in_place_turn_memory_frames)
-# A segment that turned as a whole has nearly all its matches agree on the turn; a static one
-# on real data has RANSAC fit a spurious turn to 5-9 of its 7-15 matches (kitchen_box120)
-WHOLE_TURN_MIN_SHARE = 0.8
 
 
 def rigidly_moved(state: SceneState, ctx: FrameContext, candidates: list[int], static_inliers: np.ndarray,
-                  min_turn_degrees: float | None = None, with_inliers: bool = False,
-                  exclude: np.ndarray | None = None) -> list[int]:
+                  min_turn_degrees: float | None = None) -> list[int]:
     """The candidate segments whose static-map outliers agree on one rigid motion
     (``detection.require_rigid_motion``), grouped as touching regions. With
-    ``min_turn_degrees``, only motions turning the region by at least that much count. With
-    ``with_inliers``, the motion must explain ``WHOLE_TURN_MIN_SHARE`` of all their matched
-    3D features, static inliers too. ``exclude`` ``(N,)`` bool: point measurements left out
-    (those already given to an object). A motion found with enough agreeing pairs is kept in
-    ``ctx.motions``; a region whose motion awaits confirmation goes to ``ctx.suspects``.
+    ``min_turn_degrees``, only motions turning the region by at least that much count. A
+    region whose motion awaits confirmation goes to ``ctx.suspects``.
 
     An object that moved carries its old landmarks along: their matches are outliers of the
     camera pose but inliers of one other rigid transformation. Outliers from view-dependent
@@ -51,17 +42,14 @@ def rigidly_moved(state: SceneState, ctx: FrameContext, candidates: list[int], s
     """
     if not candidates:
         return candidates
-    config, frame, measurements, static = state.config, ctx.frame, ctx.measurements, ctx.static
+    config, measurements, static = state.config, ctx.measurements, ctx.static
     if not config.detection.require_rigid_motion:
         return candidates if min_turn_degrees is None else []
     segments = measurements.segments
     matched = static.matched
     three_d = matched.is_3d
     point_segment = segments.segment_of_points(len(measurements.points))
-    # the pairs the motion is fitted to: the outliers (with_inliers: every matched 3D pair)
-    fitted_pairs = three_d & (with_inliers | ~static_inliers[matched.point_measurements])
-    if exclude is not None:
-        fitted_pairs &= ~exclude[matched.point_measurements]
+    fitted_pairs = three_d & ~static_inliers[matched.point_measurements]  # the motion is fitted to the outliers
     confirmed: list[int] = []
     for group in merge_adjacent_moving_segments(segments, candidates, config.detection.merge_gap_pixels):
         in_group = fitted_pairs & np.isin(point_segment[matched.point_measurements], group)
@@ -78,9 +66,8 @@ def rigidly_moved(state: SceneState, ctx: FrameContext, candidates: list[int], s
         ransac = dataclasses.replace(config.ransac, min_matches=config.detection.min_segment_features,
                                      min_inliers=config.detection.min_segment_features
                                      if memory or min_turn_degrees is not None else usual_inliers,
-                                     min_inlier_ratio=WHOLE_TURN_MIN_SHARE if with_inliers else 0.5)
-        rng = state.streams.turn_test if with_inliers else state.streams.objects
-        motion = register(subset, ransac, config.noise, rng)
+                                     min_inlier_ratio=0.5)
+        motion = register(subset, ransac, config.noise, state.streams.objects)
         if not motion.success:
             continue
         # The region's motion relative to the static scene, seen from the camera: a small one
@@ -88,9 +75,8 @@ def rigidly_moved(state: SceneState, ctx: FrameContext, candidates: list[int], s
         relative = np.linalg.inv(static.result.transformation) @ motion.transformation
         moved = np.linalg.norm(relative[:3, 3])
         turned = np.degrees(rotation_angle(relative[:3, :3]))
-        logger.debug("frame %d: segments %s moved %.3f m, %.1f deg (%d of %d %s agree)",
-                     measurements.frame_index, group, moved, turned, motion.num_inliers, len(rows),
-                     "matches" if with_inliers else "outliers")
+        logger.debug("frame %d: segments %s moved %.3f m, %.1f deg (%d of %d outliers agree)",
+                     measurements.frame_index, group, moved, turned, motion.num_inliers, len(rows))
         detection = config.detection
         if not (moved >= detection.min_motion or turned >= detection.min_motion_degrees):
             continue
@@ -101,16 +87,6 @@ def rigidly_moved(state: SceneState, ctx: FrameContext, candidates: list[int], s
             # one: on real data, a camera pose that is off over part of the image.
             logger.debug("frame %d: segments %s: surface seen there before", measurements.frame_index, group)
             continue
-        if detection.vacancy_veto and old_place_still_there(state, frame.depth, segments, group,
-                                                            static.result.transformation, motion.transformation):
-            logger.debug("frame %d: segments %s: where they came from is not vacated", measurements.frame_index,
-                         group)
-            continue
-        if motion.num_inliers >= usual_inliers:
-            # evidence of how this region moved, for telling apart two objects that moved side by
-            # side (split_by_motion), even where an in-place turn still awaits confirmation
-            ctx.motions.append((list(group), motion.transformation @ invert_transform(
-                static.result.transformation)))
         needed = usual_inliers if min_turn_degrees is None else IN_PLACE_TURN_INLIER_FACTOR * usual_inliers
         if motion.num_inliers < needed:
             # too few agreeing outliers to decide alone (an object turned so that few of its
@@ -173,43 +149,6 @@ def seen_static(state: SceneState, ctx: FrameContext, group: list[int]) -> bool:
     return bool(state.free_space.seen_before(violations[group].sum(), consistent[group].sum()))
 
 
-def old_place_still_there(state: SceneState, depth: np.ndarray, segments: Segments, group: list[int],
-                          T_w_c: np.ndarray, T_w_old: np.ndarray) -> bool:
-    """Whether the surface a region would have come from is still where it was.
-
-    ``T_w_old`` maps the region's camera-frame points to where the static map had them
-    (its outliers' rigid motion), ``T_w_c`` is the camera pose. A region that moved has
-    left its old place: seen from this camera, the depth there is now *behind* the old
-    surface (vacated). A false motion (repeated texture: the next cabinet door over; a pose
-    error over part of the image) points at a place whose surface is still there. Samples
-    whose old place projects onto the region itself (a move within the object's own
-    extent) or is hidden by something nearer say nothing. Still there: at least half of
-    at least ``objects.free_space_min_pixels`` (scaled) samples.
-    """
-    labels = segments.label_image
-    stride = FREE_SPACE_STRIDE
-    sub_labels = labels[::stride, ::stride]
-    sub_depth = depth[::stride, ::stride].astype(np.float64)
-    rows, cols = np.nonzero(np.isin(sub_labels, group) & (sub_depth > 0))
-    if not len(rows):
-        return False
-    intr = state.intrinsics
-    camera = backproject_pixels(cols * stride, rows * stride, sub_depth[rows, cols], intr.fx, intr.fy, intr.cx,
-                                intr.cy)
-    old_world = transform_points(T_w_old, camera)
-    old_camera = transform_points(invert_transform(T_w_c), old_world)  # the old place seen from this camera
-    zo = old_camera[:, 2]
-    (uo, vo), inside, seen = depth_at_projections(old_camera, depth, intr)
-    on_region = np.zeros(len(zo), dtype=bool)
-    on_region[inside] = np.isin(labels[vo[inside], uo[inside]], group)
-    known = ~on_region & (seen > 0)
-    margin = depth_thresholds(zo, state.config.noise)
-    there = known & (np.abs(seen - zo) <= margin)
-    vacated = known & (seen > zo + margin)
-    evidence = int(there.sum() + vacated.sum())
-    return evidence >= state.free_space.min_samples() and there.sum() >= 0.5 * evidence
-
-
 def outliers_in_place(state: SceneState, ctx: FrameContext, segment: int | list[int], static_inliers: np.ndarray,
                       also: np.ndarray | None = None) -> tuple[int, int]:
     """``(found, total)``: of the static landmarks matched as outliers in ``segment`` (one
@@ -267,53 +206,6 @@ def mostly_in_place(state: SceneState, ctx: FrameContext, segment: int | list[in
                      ctx.frame.index, segment, found, total)
         return True
     return False
-
-
-def split_by_motion(config: Config, measurements: FrameMeasurements, motions: list[tuple[list[int], np.ndarray]],
-                    group: list[int], T_w_c: np.ndarray) -> list[list[int]]:
-    """A group of touching moving segments, split when the rigid motions found for its parts
-    this frame (``motions``, from :func:`rigidly_moved`) disagree: two objects side by side that moved in the
-    same frame (the paper's method makes them one map). Two motions disagree when they put
-    the old place of either part's centroid (world frame) more than
-    ``detection.split_motion_distance`` apart. Parts whose motions agree stay together;
-    a segment of the group without a motion of its own (found by free space or displaced
-    landmarks) joins the part nearest to it in the image. Returns the groups, each
-    ascending (the group itself when there is nothing to split)."""
-    limit = config.detection.split_motion_distance
-    parts = [(sorted(set(g) & set(group)), motion) for g, motion in motions if set(g) & set(group)]
-    if limit <= 0 or len(parts) < 2:
-        return [group]
-    clusters: list[tuple[list[int], list[np.ndarray], list[np.ndarray]]] = []  # segments, motions, centroids
-    for segment_ids, motion in parts:
-        centre = region_centroid(measurements, segment_ids, T_w_c)
-        if centre is None:
-            continue
-        for members, motions, centres in clusters:
-            checks = np.array(centres + [centre])
-            if all(np.linalg.norm(transform_points(motion, checks) - transform_points(other, checks), axis=1).max()
-                   <= limit for other in motions):
-                members.extend(segment_ids)
-                motions.append(motion)
-                centres.append(centre)
-                break
-        else:
-            clusters.append((list(segment_ids), [motion], [centre]))
-    if len(clusters) < 2:
-        return [group]
-    labels = measurements.segments.label_image
-    pixel_centres = {}
-    for segment in group:
-        rows, cols = np.nonzero(labels == segment)
-        pixel_centres[segment] = np.array([cols.mean(), rows.mean()]) if len(rows) else np.zeros(2)
-    split = [list(cluster[0]) for cluster in clusters]
-    for segment in group:
-        if any(segment in part for part in split):
-            continue
-        nearest = min(range(len(split)), key=lambda k: min(
-            np.linalg.norm(pixel_centres[segment] - pixel_centres[s]) for s in split[k]))
-        split[nearest].append(segment)
-    logger.debug("frame %d: segments %s moved apart: split into %s", measurements.frame_index, group, split)
-    return [sorted(part) for part in split]
 
 
 def region_centroid(measurements: FrameMeasurements, segment_ids: list[int], T_w_c: np.ndarray) -> np.ndarray | None:

@@ -160,22 +160,17 @@ class RandomStreams:
 
     ``static``: the static map's registrations. ``objects``: object registration and
     detection, so that turning objects on (or an object appearing) does not change the RANSAC
-    samples of camera tracking. ``turn_test``: the whole-segment turn test
-    (``detection.partial_outlier_ratio``), which runs on many static segments of real data and
-    finds nothing; on a stream of its own it leaves the object registrations' samples as they
-    were (on kitchen_box120 those alone moved the box's rotation error between 0.8 and 1.25
-    degrees). ``loops``: the verification of loop closures (:mod:`~jsr.pipeline.loop_closure`).
+    samples of camera tracking. ``loops``: the verification of loop closures (:mod:`~jsr.pipeline.loop_closure`).
     """
 
     static: np.random.Generator
     objects: np.random.Generator
-    turn_test: np.random.Generator
     loops: np.random.Generator
 
     @classmethod
     def from_seed(cls, seed: int) -> "RandomStreams":
-        return cls(np.random.default_rng(seed), np.random.default_rng([seed, 1]), np.random.default_rng([seed, 2]),
-                   np.random.default_rng([seed, 3]))
+        # [seed, 2] was the stream of a detection test since removed: loops keep their samples
+        return cls(np.random.default_rng(seed), np.random.default_rng([seed, 1]), np.random.default_rng([seed, 3]))
 
 
 @dataclass
@@ -244,8 +239,6 @@ class FrameContext:
     keyframe. ``dynamic``: segments moving with no rigid object map to explain them (people):
     kept out of the static map, written as DYNAMIC; ``unexplained``: candidates part of whose
     region moved without their registration following it (:mod:`~jsr.pipeline.confirmation`).
-    ``motions``: rigid motions found this frame
-    for moving regions, ``(segments, (4, 4) world motion new place -> old place)``.
     ``given_to_static``: ``(N,)`` static landmark id for point measurements whose landmark a
     dissolved candidate just gave to the static map (-1 elsewhere; None: no such), and
     ``force_static_keyframe`` makes this frame a static keyframe so that they are linked to it.
@@ -263,7 +256,6 @@ class FrameContext:
     suspects: list[int] = field(default_factory=list)
     dynamic: list[int] = field(default_factory=list)
     unexplained: set[int] = field(default_factory=set)
-    motions: list[tuple[list[int], np.ndarray]] = field(default_factory=list)
     given_to_static: np.ndarray | None = None
     force_static_keyframe: bool = False
     adjacency: np.ndarray | None = None  # (E, 2) depth-adjacent segment pairs

@@ -116,9 +116,8 @@ def beside_moved_objects(state: SceneState, ctx: FrameContext) -> list[int]:
 def retire_static_landmarks(state: SceneState, ctx: FrameContext) -> None:
     """Static-map hygiene: landmarks the static map took from an object (before it moved)
     would keep pulling the camera. A landmark matched to a measurement that went to an
-    object, or that lies in a dynamic segment (a person), or matched as an outlier in several
-    frames in a row, is retired. Those matched to a candidate's measurements stay until it is
-    confirmed: they are the evidence that it moved."""
+    object, or that lies in a dynamic segment (a person), is retired. Those matched to a
+    candidate's measurements stay until it is confirmed: they are the evidence that it moved."""
     static, assignment = ctx.static, ctx.assignment
     if static.bridged:
         return
@@ -127,11 +126,6 @@ def retire_static_landmarks(state: SceneState, ctx: FrameContext) -> None:
     landmarks = matched.point_landmarks
     if not len(landmarks):
         return
-    result = static.result
-    inlier = np.concatenate([result.inliers_point3d, result.inliers_point2d]).astype(bool)
-    streak = state.static_map.points.outlier_streak
-    streak[landmarks[inlier]] = 0
-    streak[landmarks[~inlier]] += 1
     retire = np.zeros(len(landmarks), dtype=bool)
     if config.enabled and config.retire_object_matches:
         confirmed = [m.object_id for m in state.object_maps if m.confirmed]
@@ -139,8 +133,6 @@ def retire_static_landmarks(state: SceneState, ctx: FrameContext) -> None:
         if ctx.dynamic:
             point_segment = ctx.measurements.segments.segment_of_points(len(ctx.measurements.points))
             retire |= np.isin(point_segment[matched.point_measurements], ctx.dynamic)
-    if config.retire_after_outliers > 0:
-        retire |= streak[landmarks] >= config.retire_after_outliers
     retired = landmarks[retire & state.static_map.points.active[landmarks]]
     if len(retired):
         state.static_map.points.retire(retired)
