@@ -1113,7 +1113,14 @@ def returning_sequence(tmp_path_factory):
     return root
 
 
-def test_object_back_at_its_old_place_is_detected(returning_sequence):
+@pytest.fixture(scope="module")
+def returning_run(returning_sequence):
+    """The returning box's run up to 4 frames past its second jump (frame 19): frames 0-22."""
+    second_jump = int(motion_frames(returning_sequence, 1)[1])
+    return run(returning_sequence, sequence=open_sequence(returning_sequence, max_frames=second_jump + 4))
+
+
+def test_object_back_at_its_old_place_is_detected(returning_sequence, returning_run):
     """The in-place test does not count landmarks lying in space the static keyframes saw
     empty (phantoms of the box's first place, found again on it as if in place): after its
     jump at frame 19 the box is lost for at most two frames, then tracked with its own
@@ -1121,8 +1128,7 @@ def test_object_back_at_its_old_place_is_detected(returning_sequence):
     as that object kept it tracked from frame 19; it changed nothing on any real sequence or
     composite and was removed.)"""
     second_jump = int(motion_frames(returning_sequence, 1)[1])
-    sequence = open_sequence(returning_sequence, max_frames=second_jump + 4)
-    result = run(returning_sequence, sequence=sequence)
+    result = returning_run
     frames = list(result.sequence)
     for report in result.reports[second_jump + 2:]:
         labels = labels_of(returning_sequence, frames[report.frame_index])
@@ -1290,7 +1296,7 @@ def test_landmarks_that_agree_from_two_far_fits_overrule_the_surface():
     assert agree([first, elsewhere], centre) is None  # the landmarks disagree with each other
 
 
-def test_object_lost_in_its_jump_keeps_its_one_map(returning_sequence):
+def test_object_lost_in_its_jump_keeps_its_one_map(returning_sequence, returning_run):
     """At frame 19 the box jumps 8 cm and turns 57 degrees. Its map matches 6 inliers of 19
     and loses it; the static map's outliers on its new place are mostly found again near their
     projections and agree on no motion. It is lost for two frames, not taken for a new object
@@ -1298,8 +1304,7 @@ def test_object_lost_in_its_jump_keeps_its_one_map(returning_sequence):
     (A rule that took the segments where a just-lost object stood as that object, moved,
     kept it tracked in frames 19-20; it changed nothing on the composites, kitchen_box120 or
     the real sequences, and was removed.)"""
-    root = returning_sequence
-    result = run(root, sequence=open_sequence(root, max_frames=23))
+    root, result = returning_sequence, returning_run
     box_maps = maps_given_true_object(result, root, 1)
     assert len(box_maps) == 1
     assert box_maps <= set(result.reports[22].objects_tracked)

@@ -39,8 +39,7 @@ def detect_moving_regions(state: SceneState, ctx: FrameContext) -> None:
     against the existing object maps (an object seen again, elsewhere,
     :func:`~jsr.pipeline.reidentification.reidentify`): by features in every group, then by
     surface in the groups left, against the objects still lost; a group none fits starts a new
-    object map. Adds to ``ctx.assignment``, ``ctx.suspects`` and
-    the report's objects."""
+    object map. Adds to ``ctx.assignment``, ``ctx.suspects`` and the report's objects."""
     if not ctx.registered:
         return  # matched against the previous frame only: outliers say nothing about motion
     config, frame, measurements, report, assignment = state.config, ctx.frame, ctx.measurements, ctx.report, \

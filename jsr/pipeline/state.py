@@ -160,7 +160,8 @@ class RandomStreams:
 
     ``static``: the static map's registrations. ``objects``: object registration and
     detection, so that turning objects on (or an object appearing) does not change the RANSAC
-    samples of camera tracking. ``loops``: the verification of loop closures (:mod:`~jsr.pipeline.loop_closure`).
+    samples of camera tracking. ``loops``: the verification of loop closures
+    (:mod:`~jsr.pipeline.loop_closure`).
     """
 
     static: np.random.Generator

@@ -118,21 +118,18 @@ def retire_static_landmarks(state: SceneState, ctx: FrameContext) -> None:
     would keep pulling the camera. A landmark matched to a measurement that went to an
     object, or that lies in a dynamic segment (a person), is retired. Those matched to a
     candidate's measurements stay until it is confirmed: they are the evidence that it moved."""
-    static, assignment = ctx.static, ctx.assignment
-    if static.bridged:
+    static, assignment, config = ctx.static, ctx.assignment, state.config.objects
+    if static.bridged or not (config.enabled and config.retire_object_matches):
         return
-    config = state.config.objects
     matched = static.matched
     landmarks = matched.point_landmarks
     if not len(landmarks):
         return
-    retire = np.zeros(len(landmarks), dtype=bool)
-    if config.enabled and config.retire_object_matches:
-        confirmed = [m.object_id for m in state.object_maps if m.confirmed]
-        retire |= np.isin(assignment.point_owner[matched.point_measurements], confirmed)
-        if ctx.dynamic:
-            point_segment = ctx.measurements.segments.segment_of_points(len(ctx.measurements.points))
-            retire |= np.isin(point_segment[matched.point_measurements], ctx.dynamic)
+    confirmed = [m.object_id for m in state.object_maps if m.confirmed]
+    retire = np.isin(assignment.point_owner[matched.point_measurements], confirmed)
+    if ctx.dynamic:
+        point_segment = ctx.measurements.segments.segment_of_points(len(ctx.measurements.points))
+        retire |= np.isin(point_segment[matched.point_measurements], ctx.dynamic)
     retired = landmarks[retire & state.static_map.points.active[landmarks]]
     if len(retired):
         state.static_map.points.retire(retired)
