@@ -188,7 +188,6 @@ class ObjectsConfig:
     shape_min_texture_ratio: float = 0.5
     merge_maps: bool = True
     merge_min_shared_inliers: int = 5
-    map_merge_min_inliers: int = 12
     free_space_detection: bool = True
     free_space_margin: float = 0.1
     free_space_sigmas: float = 10.0
@@ -377,7 +376,6 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "objects.shape_min_texture_ratio": (lambda v: 0 <= v <= 1, "in [0, 1] (0: only fits that landmarks confirm)"),
     "objects.resting_max_extra_cost": (lambda v: v >= 0, "at least 0 (0: off)"),
     "objects.merge_min_shared_inliers": (lambda v: v >= 1, "at least 1"),
-    "objects.map_merge_min_inliers": (lambda v: v >= 0, "at least 0 (0: never)"),
     "objects.free_space_min_pixels": (lambda v: v >= 1, "at least 1"),
     "objects.free_space_min_segment_pixels": (lambda v: v >= 1, "at least 1"),
     "objects.free_space_share": (lambda v: 0.5 <= v <= 1, "in [0.5, 1]"),

@@ -1,9 +1,8 @@
 """Object-map merging: two maps found to be one object become one (beyond the paper, whose
 maps of one object stay apart when a jump showed sides the first map never saw).
 
-Two kinds of evidence: two maps explaining the same measurements in one frame
-(:func:`merge_duplicates`), and the landmarks of a map that just grew registering with those
-of another (:func:`merge_registered_maps`). The older map keeps its id.
+The evidence: two maps explaining the same measurements in one frame
+(:func:`merge_duplicates`). The older map keeps its id.
 """
 
 from __future__ import annotations
@@ -12,44 +11,12 @@ import logging
 
 import numpy as np
 
-from jsr.config import Config
 from jsr.geometry import transform_planes, transform_points
 from jsr.pipeline.association import inlier_mask
 from jsr.pipeline.maps import Keyframe, ObjectMap
-from jsr.pipeline.matching import match_descriptors
-from jsr.pipeline.correspondences import Correspondences, RegistrationResult
-from jsr.pipeline.registration import register
 from jsr.pipeline.state import FrameContext, SceneState
 
 logger = logging.getLogger(__name__)
-
-
-def register_maps(target: ObjectMap, source: ObjectMap, config: Config, rng: np.random.Generator
-                  ) -> RegistrationResult | None:
-    """``T_target_source`` between two object maps from their point landmarks alone: the
-    active landmarks of ``source`` are matched to those of ``target`` by descriptor (ratio
-    test, cross-checked) and registered 3D-3D by RANSAC with the paper's thresholds. Two maps
-    of one object (started apart because a jump turned a side the first had never seen to the
-    camera) share the landmarks of every side both have seen since, whether or not they were
-    ever tracked in the same frame. None when there are too few matches to try.
-
-    A landmark's inlier threshold uses its distance from its map's origin (the camera that
-    started the map) as the depth it was measured at.
-    """
-    source_ids = np.flatnonzero(source.points.active)
-    target_ids = np.flatnonzero(target.points.active)
-    if min(len(source_ids), len(target_ids)) < config.ransac.min_matches:
-        return None
-    pairs = match_descriptors(source.points.descriptors[source_ids], target.points.descriptors[target_ids],
-                              config.matching.ratio_test, mutual=True,
-                              max_distance=config.matching.max_descriptor_distance)
-    if len(pairs) < config.ransac.min_matches:
-        return None
-    source_points = source.points.positions[source_ids[pairs[:, 0]]]
-    correspondences = Correspondences(frame_points=source_points,
-                                      map_points=target.points.positions[target_ids[pairs[:, 1]]],
-                                      point_depths=np.linalg.norm(source_points, axis=1))
-    return register(correspondences, config.ransac, config.noise, rng)
 
 
 def merge_object_maps(target: ObjectMap, source: ObjectMap, T_target_source: np.ndarray) -> np.ndarray:
@@ -140,36 +107,6 @@ def merge_duplicates(state: SceneState, ctx: FrameContext) -> None:
             inliers[keep.object_map.object_id] |= inliers[gone.object_map.object_id]
             merged.add(gone.object_map.object_id)
     ctx.outcomes = [o for o in ctx.outcomes if o.object_map.object_id not in merged]
-
-
-def merge_registered_maps(state: SceneState, ctx: FrameContext, object_map: ObjectMap) -> None:
-    """Merge ``object_map`` (which just got a keyframe) with every other object map its
-    landmarks register with (:func:`register_maps`, at least ``objects.map_merge_min_inliers``
-    inliers): one object seen as two maps, though never in the same frame. The older map
-    keeps its id; this frame's assignment and report follow the merge."""
-    config = state.config.objects
-    if not config.merge_maps or config.map_merge_min_inliers <= 0:
-        return
-    frame_index, assignment, report = ctx.frame.index, ctx.assignment, ctx.report
-    for other in [m for m in state.object_maps if m is not object_map]:
-        if other not in state.object_maps or object_map not in state.object_maps:
-            continue
-        if other.last_tracked_frame == frame_index:
-            continue  # both seen in this frame: merge_duplicates compared their inliers
-        target, source = (other, object_map) if keeps(other, object_map) else (object_map, other)
-        result = register_maps(target, source, state.config, state.streams.objects)
-        if result is None or not result.success or result.num_inliers < config.map_merge_min_inliers:
-            continue
-        merge_maps(state, target, source, result.transformation, frame_index,
-                   f"{result.num_inliers} of {result.num_matches} landmark matches agree")
-        for owner in (assignment.point_owner, assignment.plane_owner, assignment.segment_owner):
-            owner[owner == source.object_id] = target.object_id
-        for ids in (report.objects_tracked, report.objects_created):
-            if source.object_id in ids:
-                ids.remove(source.object_id)
-                if ids is report.objects_tracked and target.object_id not in ids:
-                    ids.append(target.object_id)
-        object_map = target
 
 
 def keeps(first: ObjectMap, second: ObjectMap) -> bool:

@@ -240,16 +240,15 @@ def not_static_pixels(state: SceneState, ctx: FrameContext) -> np.ndarray:
     return unknown
 
 
-def update_object(state: SceneState, ctx: FrameContext, outcome: ObjectTrackingResult) -> bool:
-    """Record the object's pose and add a keyframe when the object-relative view is new
-    (then True)."""
+def update_object(state: SceneState, ctx: FrameContext, outcome: ObjectTrackingResult) -> None:
+    """Record the object's pose and add a keyframe when the object-relative view is new."""
     frame, measurements, report, assignment = ctx.frame, ctx.measurements, ctx.report, ctx.assignment
     object_map = outcome.object_map
     if object_map not in state.object_maps:
-        return False  # merged into another map earlier in this frame
+        return  # merged into another map earlier in this frame
     best = outcome.best
     if best is None:
-        return False
+        return
     matched, result = best
     T_o_c = result.transformation
     object_map.lost = False
@@ -265,13 +264,13 @@ def update_object(state: SceneState, ctx: FrameContext, outcome: ObjectTrackingR
         object_map.last_pose_registered = not outcome.pose_from_surface
         object_map.record_pose(frame.index, frame.timestamp, T_w_o)
     if not object_map.confirmed:
-        return False  # a candidate keeps the model it was detected with: is that one rigid body?
+        return  # a candidate keeps the model it was detected with: is that one rigid body?
     points, planes = measurements.points, measurements.planes
     own_points = np.flatnonzero(assignment.point_owner == object_map.object_id)
     landmark_of = inlier_landmarks(matched, result, len(points))
     if not (object_map.needs_keyframe(T_o_c, state.config.keyframes)
             or map_would_grow(state.config, object_map, points, own_points, landmark_of)):
-        return False
+        return
     own_planes = np.flatnonzero(assignment.plane_owner == object_map.object_id)
     plane_landmark_of = inlier_plane_landmarks(matched, result, len(planes))
     keyframe = object_map.add_keyframe(
@@ -280,7 +279,6 @@ def update_object(state: SceneState, ctx: FrameContext, outcome: ObjectTrackingR
     own_segments = np.flatnonzero(assignment.segment_owner == object_map.object_id)
     index_segments(state, object_map, keyframe, measurements, own_segments)
     state.bundle.maybe_start(object_map)
-    return True
 
 
 def map_would_grow(config: Config, object_map: ObjectMap, points: PointMeasurements, own_points: np.ndarray,

@@ -41,7 +41,7 @@ from jsr.pipeline.classify import classify_frame
 from jsr.pipeline.confirmation import drop_undecided, weigh_maps
 from jsr.pipeline.free_space import FreeSpaceViews
 from jsr.pipeline.frontend import FrontEnd
-from jsr.pipeline.map_merging import merge_duplicates, merge_registered_maps
+from jsr.pipeline.map_merging import merge_duplicates
 from jsr.pipeline.map_updates import initialise, update_object, update_static
 from jsr.pipeline.maps import Map, ObjectMap
 from jsr.pipeline.moving_regions import detect_moving_regions
@@ -203,8 +203,7 @@ class Reconstructor:
                 if objects_on:
                     retire_vacated_landmarks(state, ctx.frame, ctx.report.T_w_c, ctx.static)
             for outcome in ctx.outcomes:
-                if update_object(state, ctx, outcome):
-                    merge_registered_maps(state, ctx, outcome.object_map)
+                update_object(state, ctx, outcome)
 
     def _apply_bundle_adjustments(self) -> None:
         """Bundle adjustments started after earlier keyframes ran while the front-end worked;
