@@ -125,6 +125,8 @@ class KeyframesConfig:
 
     translation: float = 0.1
     rotation_degrees: float = 10.0
+    tracked_share: float = 0.7
+    weak_inliers: int = 100
     static_min_inliers: int = 50
 
 
@@ -336,6 +338,8 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "ransac.depth_fallback": (lambda v: v == 0 or v >= 1, "0 (off) or at least 1"),
     "keyframes.translation": (lambda v: v >= 0, "at least 0"),
     "keyframes.rotation_degrees": (lambda v: v >= 0, "at least 0"),
+    "keyframes.tracked_share": (lambda v: 0 <= v < 1, "in [0, 1) (0: off)"),
+    "keyframes.weak_inliers": (lambda v: v >= 0, "at least 0"),
     "keyframes.static_min_inliers": (lambda v: v >= 0, "at least 0"),
     "detection.segment_outlier_ratio": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "detection.min_segment_features": (lambda v: v >= 1, "at least 1"),

@@ -99,6 +99,34 @@ def test_no_static_keyframe_from_a_poorly_supported_pose(static_sequence):
     assert all(r.tracked and not r.new_keyframe for r in gated_reports[1:])
 
 
+def test_a_keyframe_is_taken_when_the_map_loses_the_view(static_sequence):
+    """keyframes.tracked_share: with the distance and angle thresholds out of reach, a frame
+    becomes a static keyframe when its matches to the map fall below the share of the best
+    frame's since the last keyframe (and its inliers below keyframes.weak_inliers), so the map
+    keeps up with the camera instead of being bridged or lost."""
+    sequence = open_sequence(static_sequence, max_frames=20)
+    far = ["keyframes.translation=100", "keyframes.rotation_degrees=180", "keyframes.weak_inliers=100000"]
+    alone, _ = track(sequence, far + ["keyframes.tracked_share=0", "matching.bridge_with_previous_frame=false"])
+    assert len(alone.static_map.keyframes) == 1
+    reconstructor, reports = track(sequence, far + ["keyframes.tracked_share=0.7",
+                                                    "matching.bridge_with_previous_frame=false"])
+    assert all(r.tracked for r in reports)
+    taken = [i for i, r in enumerate(reports) if r.new_keyframe and i > 0]
+    assert len(taken) >= 2
+    last = 0
+    for index in taken:
+        best = max(r.matches for r in reports[last + 1:index])
+        assert reports[index].matches < 0.7 * best
+        assert all(r.matches >= 0.7 * max(q.matches for q in reports[last + 1:j + 1])
+                   for j, r in enumerate(reports[last + 1:index], start=last + 1))  # not earlier
+        last = index
+    assert ate(reports, sequence) < 0.01
+    # weak_inliers: a view still well supported is not a reason for a keyframe
+    strong, strong_reports = track(sequence, far[:2] + ["keyframes.tracked_share=0.7", "keyframes.weak_inliers=1",
+                                                        "matching.bridge_with_previous_frame=false"])
+    assert len(strong.static_map.keyframes) == 1
+
+
 def test_depth_carries_frames_whose_features_fail(static_sequence, tmp_path):
     """dense: frames whose colour is blank (no feature at all) but whose depth is sharp are
     placed by their depth alone from the predicted pose; without the dense term they are lost."""

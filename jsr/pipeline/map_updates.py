@@ -151,18 +151,35 @@ def ensure_vocabulary(state: SceneState, measurements: FrameMeasurements) -> Non
 
 
 def update_static(state: SceneState, ctx: FrameContext) -> None:
-    """Add a keyframe to the static map (its own measurements only) when the pose is new and
+    """Add a keyframe to the static map (its own measurements only) when the view is new and
     the registration that found it has ``keyframes.static_min_inliers`` inliers: landmarks
-    made at a poorly supported pose would be a shifted copy of the scene."""
+    made at a poorly supported pose would be a shifted copy of the scene.
+
+    The view is new when the pose is far from every keyframe (``keyframes.translation``,
+    ``rotation_degrees``), or when the map is losing it: the frame matches fewer map
+    landmarks than ``keyframes.tracked_share`` of the best frame since the last keyframe, and
+    has fewer than ``keyframes.weak_inliers`` inliers (people covering the view, a slow turn).
+    Waiting for the distance there let the inliers fall below the minimum first, and the map
+    stopped growing. Matches, not inliers, measure the view: an object that moves away keeps
+    its matches (as outliers) and is no reason for a keyframe."""
     frame, measurements, report, static, assignment = ctx.frame, ctx.measurements, ctx.report, ctx.static, ctx.assignment
-    pose = report.T_w_c
+    pose, settings, camera = report.T_w_c, state.config.keyframes, state.camera
+    matches = static.result.num_matches
     if not (static.bridged or ctx.force_static_keyframe):
-        if not state.static_map.needs_keyframe(pose, state.config.keyframes):
+        camera.best_matches = max(camera.best_matches, matches)
+        fading = (matches < settings.tracked_share * camera.best_matches
+                  and static.result.num_inliers < settings.weak_inliers)
+        if not (fading or state.static_map.needs_keyframe(pose, settings)):
             return
-        if static.result.num_inliers < state.config.keyframes.static_min_inliers:
+        if static.result.num_inliers < settings.static_min_inliers:
             logger.debug("frame %d: no static keyframe: %d registration inliers, fewer than "
                          "keyframes.static_min_inliers", frame.index, static.result.num_inliers)
             return
+        if fading:
+            logger.debug("frame %d: static keyframe: %d matches to the map, fewer than %.2f of the %d of the "
+                         "best frame since the last keyframe", frame.index, matches, settings.tracked_share,
+                         camera.best_matches)
+    camera.best_matches = 0
     points, planes = measurements.points, measurements.planes
     static_points = np.flatnonzero(assignment.point_owner == 0)
     static_planes = np.flatnonzero(assignment.plane_owner == 0)

@@ -120,7 +120,9 @@ class CameraTrack:
 
     ``last_pose`` ``T_w_c`` of the last tracked frame; ``velocity`` ``(4, 4)`` the last
     frame-to-frame motion in the camera frame (constant-velocity prediction); ``previous``
-    the last tracked frame's measurements and pose (bridging after a failed registration).
+    the last tracked frame's measurements and pose (bridging after a failed registration);
+    ``best_matches`` the most matches to the static map of a frame since the last static
+    keyframe (how well the map saw the view at best; ``keyframes.tracked_share``).
     """
 
     last_pose: np.ndarray | None = None
@@ -129,6 +131,7 @@ class CameraTrack:
     previous: tuple[FrameMeasurements, np.ndarray] | None = None
     frames_lost: int = 0
     frames_bridged: int = 0
+    best_matches: int = 0
 
 
 @dataclass

@@ -1,8 +1,8 @@
 """Static-map hygiene (beyond the paper, whose main weakness it is): what belongs to an object
 must not stay in, or enter, the static map, where it would keep pulling the camera.
 
-Landmarks matched to an object's measurements, matched as outliers in several frames in a row, or
-seen through where an object has left, are retired. Segments that may have moved but are not yet
+Landmarks matched to an object's measurements or to a dynamic segment's (a person), or seen
+through where an object has left, are retired. Segments that may have moved but are not yet
 known to (:attr:`FrameContext.suspects`), and faces beside an object that has just moved, are
 kept out of the static keyframe.
 """
