@@ -70,17 +70,6 @@ def test_matches_shuffled_noisy_descriptors() -> None:
     assert np.all(np.diff(pairs[:, 0]) > 0)  # sorted by frame index, one match per frame keypoint
 
 
-def test_mutual_check_keeps_one_to_one() -> None:
-    map_desc = np.zeros((2, 128), np.float32)
-    map_desc[0, 0] = 10.0
-    map_desc[1, 5] = 10.0
-    frame_desc = np.zeros((2, 128), np.float32)
-    frame_desc[0, 0] = 9.0  # both nearest to map 0; frame 0 is the closer one
-    frame_desc[1, 0] = 8.0
-    assert len(match_descriptors(frame_desc, map_desc, ratio=0.9)) == 2
-    np.testing.assert_array_equal(match_descriptors(frame_desc, map_desc, ratio=0.9, mutual=True), [[0, 0]])
-
-
 def test_max_distance_on_normalised_descriptors() -> None:
     map_desc = np.zeros((2, 128), np.float32)
     map_desc[0, 0] = 512.0

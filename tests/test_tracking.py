@@ -122,7 +122,7 @@ def test_a_keyframe_is_taken_when_the_map_loses_the_view(static_sequence):
         last = index
     assert ate(reports, sequence) < 0.01
     # weak_inliers: a view still well supported is not a reason for a keyframe
-    strong, strong_reports = track(sequence, far[:2] + ["keyframes.tracked_share=0.7", "keyframes.weak_inliers=1",
+    strong, _ = track(sequence, far[:2] + ["keyframes.tracked_share=0.7", "keyframes.weak_inliers=1",
                                                         "matching.bridge_with_previous_frame=false"])
     assert len(strong.static_map.keyframes) == 1
 

@@ -25,15 +25,12 @@ def _descriptors(values: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.atleast_2d(values), dtype=np.float32)
 
 
-def _nearest_two(
-    query: np.ndarray, train: np.ndarray, with_reverse: bool = False
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+def _nearest_two(query: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exhaustive nearest neighbours by Euclidean distance, blocked over the query rows.
 
-    Returns the nearest train index of every query, the distances to the nearest and the
-    second nearest train descriptor (inf when there is only one), and with ``with_reverse``
-    the nearest query index of every train descriptor. Squared distances come from one
-    float32 matrix product per block, ``|a|^2 + |b|^2 - 2 a.b``; ties go to the lower index.
+    Returns the nearest train index of every query and the distances to the nearest and the
+    second nearest train descriptor (inf when there is only one). Squared distances come from
+    one float32 matrix product per block, ``|a|^2 + |b|^2 - 2 a.b``; ties go to the lower index.
     """
     n, m = len(query), len(train)
     query_norms = np.einsum("nd,nd->n", query, query)
@@ -41,8 +38,6 @@ def _nearest_two(
     best = np.empty(n, dtype=np.int64)
     best_sq = np.empty(n, dtype=np.float64)
     second_sq = np.full(n, np.inf)
-    reverse_sq = np.full(m, np.inf, dtype=np.float32)
-    reverse = np.zeros(m, dtype=np.int64)
     rows_per_block = max(1, _BLOCK_ELEMENTS // max(m, 1))
     for start in range(0, n, rows_per_block):
         stop = min(n, start + rows_per_block)
@@ -51,12 +46,6 @@ def _nearest_two(
         squared += train_norms[None, :]
         squared += query_norms[start:stop, None]
         rows = np.arange(stop - start)
-        if with_reverse:
-            block_best = np.argmin(squared, axis=0)
-            block_sq = squared[block_best, np.arange(m)]
-            better = block_sq < reverse_sq
-            reverse_sq[better] = block_sq[better]
-            reverse[better] = block_best[better] + start
         nearest = np.argmin(squared, axis=1)
         best[start:stop] = nearest
         best_sq[start:stop] = squared[rows, nearest]
@@ -65,7 +54,7 @@ def _nearest_two(
             second_sq[start:stop] = squared.min(axis=1)
     best_distance = np.sqrt(np.maximum(best_sq, 0.0))
     second_distance = np.sqrt(np.maximum(second_sq, 0.0))
-    return best, best_distance, second_distance, reverse if with_reverse else None
+    return best, best_distance, second_distance
 
 
 _BLOCK_ELEMENTS = 4_000_000
@@ -76,16 +65,13 @@ def match_descriptors(
     frame_desc: np.ndarray,
     map_desc: np.ndarray,
     ratio: float,
-    mutual: bool = False,
     max_distance: float | None = None,
 ) -> np.ndarray:
     """Nearest-neighbour matches that pass Lowe's ratio test, ``(K, 2)`` ``[frame, map]``.
 
     A frame descriptor matches its nearest map descriptor (Euclidean distance) when that
     distance is below ``ratio`` times the distance to the second nearest. With a single map
-    descriptor there is no second neighbour and the nearest one is kept. ``mutual`` also
-    requires the frame descriptor to be the nearest of all frame descriptors to that map
-    descriptor (a cross check, which also makes the matches one-to-one). ``max_distance``
+    descriptor there is no second neighbour and the nearest one is kept. ``max_distance``
     optionally bounds the distance between the L2-normalised descriptors (in ``[0, 2]``).
 
     Exhaustive and exact (no approximate index such as FLANN), deterministic: the distances
@@ -98,11 +84,9 @@ def match_descriptors(
         return _NO_PAIRS.copy()
     if frame_desc.shape[1] != map_desc.shape[1]:
         raise ValueError("frame and map descriptors must have the same length")
-    map_index, best, second, reverse = _nearest_two(frame_desc, map_desc, with_reverse=mutual)
+    map_index, best, second = _nearest_two(frame_desc, map_desc)
     keep = best < ratio * second if len(map_desc) >= 2 else np.ones(len(best), dtype=bool)
     frame_index = np.arange(len(frame_desc), dtype=np.int64)
-    if mutual:
-        keep &= reverse[map_index] == frame_index
     if max_distance is not None:
         keep &= _normalised_distance(frame_desc, map_desc[map_index]) <= max_distance
     return np.column_stack([frame_index[keep], map_index[keep]]).astype(np.int64)
