@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 
 from jsr.pipeline.surface_alignment import MAX_ALIGNED_POINTS, align_surfaces, alignment_voxel
 from jsr.pipeline.surface_evidence import geometric_constraint, texture_agreement
-from jsr.pipeline.surfaces import SurfaceSample, build_model, sample_surface
+from jsr.pipeline.surfaces import SurfaceSample, build_model, sample_surface, thinned
 
 VOXEL = 0.01
 
@@ -64,16 +64,21 @@ def test_alignment_recovers_a_turned_textured_box():
 
 def test_a_large_surface_is_aligned_at_a_coarser_voxel():
     """A person-sized surface (three faces of a 1.0 x 0.8 x 0.5 m box, ~17000 points at 1 cm) is
-    aligned at the voxel that leaves about MAX_ALIGNED_POINTS points (bounded cost), and the
-    turn is still found; a box of 24 cm keeps the full resolution."""
+    aligned at a voxel that leaves neither surface more than MAX_ALIGNED_POINTS points (bounded
+    cost), and the turn is still found; a box of 24 cm keeps the full resolution."""
     points, colors = _box_faces(size=(1.0, 0.8, 0.5), spacing=0.008)
     T_model_camera = make_transform(rotation_about_axis([1.0, 0.0, 0.0], np.pi), [0.0, 0.0, 2.5])
     model = build_model([(T_model_camera, _view(points, colors, T_model_camera))], VOXEL)
     T_true = make_transform(rotation_about_axis([0.0, 0.0, 1.0], np.radians(100)), [0.05, -0.03, 0.0])
     region = build_model([(T_model_camera, _view(transform_points(T_true, points), colors, T_model_camera))], VOXEL)
     assert len(model.points) > 4 * MAX_ALIGNED_POINTS
-    assert alignment_voxel(len(region.points), len(model.points), VOXEL) > 2 * VOXEL
-    assert alignment_voxel(1000, 1800, VOXEL) == VOXEL
+    coarser = alignment_voxel(region, model, VOXEL)
+    assert coarser > 2 * VOXEL
+    assert max(len(thinned(region, coarser).points), len(thinned(model, coarser).points)) <= MAX_ALIGNED_POINTS
+    small, small_colors = _box_faces(size=(0.24, 0.2, 0.15), spacing=0.008)
+    small_model = build_model([(T_model_camera, _view(small, small_colors, T_model_camera))], VOXEL)
+    assert len(small_model.points) < MAX_ALIGNED_POINTS
+    assert alignment_voxel(small_model, small_model, VOXEL) == VOXEL
     alignments = align_surfaces(region, model, VOXEL, np.random.default_rng(0))
     assert alignments, "no alignment found"
     error = alignments[0].T_model_region @ T_true
