@@ -255,6 +255,7 @@ class BundleAdjustmentConfig:
     plane_normal_sigma: float = 0.01
     plane_offset_sigma: float = 0.01
     min_shared_landmarks: int = 3
+    link_max_spread: float = 3.0
     estimate_noise: bool = True
     final_global: bool = True
 
@@ -412,6 +413,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "bundle_adjustment.plane_normal_sigma": (lambda v: v > 0, "positive"),
     "bundle_adjustment.plane_offset_sigma": (lambda v: v > 0, "positive"),
     "bundle_adjustment.min_shared_landmarks": (lambda v: v >= 1, "at least 1"),
+    "bundle_adjustment.link_max_spread": (lambda v: v >= 0, "at least 0 (0: shared landmarks link by their count)"),
     "output.mesh_voxel_size": (lambda v: v > 0, "positive"),
 }
 

@@ -259,10 +259,11 @@ def test_window_holds_older_keyframes_fixed():
     assert not np.allclose(before[5:], after[5:])
 
 
-def island_map(rng, shared: int):
+def island_map(rng, shared: int, clustered: bool = False):
     """8 keyframes (no planes) whose last 3 observe their own copies of the landmarks, but for
     ``shared`` landmarks they keep in common with the first 5: a group of keyframes that a jump
-    of an object left tied to the rest of its map by a few landmarks."""
+    of an object left tied to the rest of its map by a few landmarks. ``clustered``: those
+    nearest to one landmark, else any."""
     scene = make_scene(rng, keyframes=8, landmarks=300, planes=0)
     the_map = build_map(scene, rng)
     count = len(scene.landmarks)
@@ -270,7 +271,10 @@ def island_map(rng, shared: int):
                                 np.zeros((count, 3), np.uint8))
     early = np.unique(np.concatenate([o.landmarks for o in scene.observations[:5]]))
     late = np.unique(np.concatenate([o.landmarks for o in scene.observations[5:]]))
-    kept = np.intersect1d(early, late)[:shared]
+    kept = np.intersect1d(early, late)
+    if clustered:
+        kept = kept[np.argsort(np.linalg.norm(scene.landmarks[kept] - scene.landmarks[kept[0]], axis=1))]
+    kept = kept[:shared]
     for keyframe in the_map.keyframes[5:]:
         island = ~np.isin(keyframe.point_landmarks, kept)
         keyframe.point_landmarks = np.where(island, copies[keyframe.point_landmarks], keyframe.point_landmarks)
@@ -280,13 +284,14 @@ def island_map(rng, shared: int):
 @pytest.mark.parametrize("shared, island_pinned", [(1, True), (2, True), (3, False), (20, False)])
 def test_a_group_of_free_keyframes_barely_tied_to_the_rest_keeps_its_oldest_fixed(shared, island_pinned):
     the_map = island_map(np.random.default_rng(4), shared)
-    config = BundleAdjustmentConfig(enabled=True, min_shared_landmarks=3)
+    config = BundleAdjustmentConfig(enabled=True, min_shared_landmarks=3, link_max_spread=0.0)  # by the count
     problem = BundleProblem.from_map(the_map, config, NOISE, K, window=4)
     free = {int(k): int(slot) >= 0 for k, slot in zip(problem.keyframe_indices, problem.free_index)}
     assert free[4] and free[6] and free[7]  # keyframe 4 shares hundreds with the fixed ones
     assert free[5] is not island_pinned
-    # with min_shared_landmarks 1, one common landmark links
-    lenient = BundleProblem.from_map(the_map, replace(config, min_shared_landmarks=1), NOISE, K, window=4)
+    # with min_shared_landmarks 1 and no pinning test, one common landmark links
+    lenient = BundleProblem.from_map(the_map, replace(config, min_shared_landmarks=1, link_max_spread=0.0), NOISE, K,
+                                     window=4)
     assert np.all(lenient.free_index[np.isin(lenient.keyframe_indices, [4, 5, 6, 7])] >= 0)
     # the pinned group is still adjusted within itself
     before = the_map.keyframe_poses.copy()
@@ -297,8 +302,40 @@ def test_a_group_of_free_keyframes_barely_tied_to_the_rest_keeps_its_oldest_fixe
     assert not np.allclose(before[6:], after[6:])
 
 
+def test_shared_landmarks_link_keyframes_only_where_they_pin_them():
+    """3 landmarks spread over the scene (1.8 m) link the island to the rest; the 3 nearest to
+    one landmark (a patch of 11 cm, which hardly holds the turns about it) do not: its oldest
+    keyframe is held fixed, as with too few."""
+    config = BundleAdjustmentConfig(enabled=True)
+    assert config.min_shared_landmarks == 3 and config.link_max_spread > 0
+    for clustered in (False, True):
+        the_map = island_map(np.random.default_rng(4), 3, clustered=clustered)
+        problem = BundleProblem.from_map(the_map, config, NOISE, K, window=4)
+        free = {int(k): int(slot) >= 0 for k, slot in zip(problem.keyframe_indices, problem.free_index)}
+        assert free[4] and free[6] and free[7]
+        assert free[5] is not clustered
+
+
+def test_link_spread_of_a_patch_and_the_floor_against_points_across_the_view():
+    """bonn_crowd_people's case: 5 points within 15 cm at 3 m and the floor leave the turn
+    about the vertical through the points to the points alone; 30 points across the view pin
+    the keyframe. Spread in inlier thresholds, over the keyframe's own landmarks."""
+    from jsr.pipeline.bundle_links import link_spread
+
+    rng = np.random.default_rng(0)
+    pose = np.eye(4)  # camera at the origin looking along +z, y down
+    own = np.column_stack([rng.uniform(-2, 2, 200), rng.uniform(-1, 1.2, 200), rng.uniform(1.5, 4, 200)])
+    patch = np.array([0.0, -1.0, 3.0]) + rng.uniform(-0.075, 0.075, size=(5, 3))
+    floor = np.array([[0.0, -1.0, 0.0]])
+    config = BundleAdjustmentConfig()
+    loose = link_spread(patch, floor, own, pose, NOISE, config)
+    across = link_spread(own[:30], floor, own, pose, NOISE, config)
+    assert loose > 5.0 and across < 0.5
+    assert link_spread(patch[:2], np.zeros((0, 3)), own, pose, NOISE, config) == float("inf")  # a turn left free
+
+
 def test_linked_groups_count_points_and_planes_apart():
-    from jsr.pipeline.bundle import _linked_groups
+    from jsr.pipeline.bundle_links import linked_groups as _linked_groups
 
     none = np.zeros(0, dtype=np.int64)
     assert _linked_groups(3, none, none, none, none, 1).tolist() == [0, 1, 2]  # nothing observed: no links

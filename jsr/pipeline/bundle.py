@@ -5,9 +5,10 @@ locations" by minimising the registration error. Here one run works on a *window
 ``window_keyframes`` keyframes of the map are free, every landmark they observe is free, and
 every other keyframe that observes one of those landmarks contributes its observations with
 its pose held fixed. The first keyframe of a map is always fixed (it defines the map frame).
-Keyframes that observe at least ``min_shared_landmarks`` common landmarks are linked; a group
-of free keyframes linked to no fixed keyframe has its oldest keyframe held fixed, since the few
-landmarks it shares with the rest do not fix where the group lies (:func:`_linked_groups`).
+Keyframes that observe at least ``min_shared_landmarks`` common landmarks, and landmarks that
+pin them, are linked; a group of free keyframes linked to no fixed keyframe has its oldest
+keyframe held fixed, since the few landmarks it shares with the rest do not fix where the group
+lies (:mod:`jsr.pipeline.bundle_links`).
 
 Parameters (all increments from the current state, so ``x0 = 0``; the solver itself sees them
 shifted by :data:`SOLVER_OFFSET`):
@@ -55,12 +56,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import coo_matrix, csr_matrix
+from scipy.sparse import csr_matrix
 from scipy.spatial.transform import Rotation
 
 from jsr.config import BundleAdjustmentConfig, NoiseConfig
 from jsr.geometry import invert_transform, transform_points
 from jsr.pipeline.bundle_jacobian import analytic_jacobian
+from jsr.pipeline.bundle_links import link_spread, linked_groups
 from jsr.pipeline.bundle_noise import (BOUNDS, GROUPS, MAX_PASSES, TOLERANCE, measured_spread, restore, reweigh,
                                        update, weights)
 from jsr.pipeline.maps import Map
@@ -261,16 +263,23 @@ class BundleProblem:
         frame_slot[frames] = np.arange(len(frames))
         free = frames >= first_free
         # gauge: every group of free keyframes must be tied to a fixed keyframe
-        linked_groups = _linked_groups(len(frames), frame_slot[obs_frame[keep]], obs_landmark[keep],
-                                       frame_slot[pobs_frame[pkeep]], pobs_landmark[pkeep],
-                                       config.min_shared_landmarks)
-        for group in np.unique(linked_groups):
-            members = np.flatnonzero(linked_groups == group)
+        def pins(older: int, newer: int, shared_points: np.ndarray, shared_planes: np.ndarray) -> bool:
+            keyframe = keyframes[frames[newer]]
+            own = keyframe.point_landmarks[map.points.active[keyframe.point_landmarks]]
+            spread = link_spread(map.points.positions[shared_points], map.planes.planes[shared_planes, :3],
+                                 map.points.positions[own], keyframe.T_map_cam, noise, config)
+            return spread <= config.link_max_spread
+
+        linked = linked_groups(len(frames), frame_slot[obs_frame[keep]], obs_landmark[keep],
+                               frame_slot[pobs_frame[pkeep]], pobs_landmark[pkeep], config.min_shared_landmarks,
+                               pins if config.link_max_spread > 0 else None)
+        for group in np.unique(linked):
+            members = np.flatnonzero(linked == group)
             if free[members].all():
                 oldest = int(members[0])
                 free[oldest] = False
-                logger.debug("%s: keyframes %s are linked to no fixed keyframe by %d common landmarks; holding "
-                             "keyframe %d fixed", map.name, frames[members].tolist(),
+                logger.debug("%s: keyframes %s are linked to no fixed keyframe by %d common landmarks that pin them; "
+                             "holding keyframe %d fixed", map.name, frames[members].tolist(),
                              config.min_shared_landmarks, int(frames[oldest]))
         if not free.any():
             return None
@@ -536,42 +545,6 @@ class BundleProblem:
             num_points=self.num_points,
             num_planes=self.num_planes,
         )
-
-
-def _linked_groups(num_frames: int, point_frames: np.ndarray, point_landmarks: np.ndarray, plane_frames: np.ndarray,
-                   plane_landmarks: np.ndarray, min_shared: int) -> np.ndarray:
-    """``(num_frames,)`` group label per keyframe of a problem: keyframes are linked when they
-    observe at least ``min_shared`` common landmarks (points and planes together), and a group
-    is what links connect. Observations are given as keyframe slots ``(K,)`` and landmark ids
-    ``(K,)``, point and plane ids counted apart.
-
-    Why: the window's gauge is set by the fixed keyframes, but a group of free keyframes tied to
-    them by a handful of landmarks (an object map after a jump its landmarks barely bridged) has
-    a pose that those few fix poorly, and least squares may turn it far to fit one bad match.
-    Links are counted per pair of keyframes: a group tied to two fixed keyframes by 2 landmarks
-    each counts as unlinked (on the safe side: it keeps its pose)."""
-    from scipy.sparse.csgraph import connected_components
-
-    labels = np.arange(num_frames)
-    columns, rows = [], []
-    offset = 0  # point and plane landmarks get columns of their own
-    for frames, landmarks in ((point_frames, point_landmarks), (plane_frames, plane_landmarks)):
-        if len(frames):
-            ids, landmark_column = np.unique(landmarks, return_inverse=True)
-            rows.append(frames)
-            columns.append(landmark_column + offset)
-            offset += len(ids)
-    if not rows:
-        return labels
-    rows_all, columns_all = np.concatenate(rows), np.concatenate(columns)
-    incidence = coo_matrix((np.ones(len(rows_all)), (rows_all, columns_all)),
-                           shape=(num_frames, int(columns_all.max()) + 1)).tocsr()
-    incidence.data[:] = 1.0  # a landmark observed twice by one keyframe counts once
-    shared = (incidence @ incidence.T).tocoo()
-    strong = shared.data >= min_shared
-    links = coo_matrix((np.ones(int(strong.sum())), (shared.row[strong], shared.col[strong])),
-                       shape=(num_frames, num_frames))
-    return connected_components(links, directed=False)[1]
 
 
 def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
