@@ -114,8 +114,6 @@ class RansacConfig:
     sample_2d_below: int = 20
     refine_rounds: int = 3
     refinement: str = "image"
-    prior_translation: float = 0.0
-    prior_rotation_degrees: float = 0.0
     depth_fallback: float = 3.0
 
 
@@ -333,8 +331,6 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "ransac.plane_inlier_distance": (lambda v: v > 0, "positive"),
     "ransac.batch_size": (lambda v: v >= 1, "at least 1"),
     "ransac.sample_2d_below": (lambda v: v >= 3, "at least 3"),
-    "ransac.prior_translation": (lambda v: v >= 0, "at least 0 (0: no motion prior)"),
-    "ransac.prior_rotation_degrees": (lambda v: v >= 0, "at least 0 (0: no motion prior)"),
     "ransac.refine_rounds": (lambda v: v >= 0, "at least 0 (0 disables refinement)"),
     "ransac.depth_fallback": (lambda v: v == 0 or v >= 1, "0 (off) or at least 1"),
     "keyframes.translation": (lambda v: v >= 0, "at least 0"),

@@ -373,8 +373,8 @@ def test_depth_fallback_keeps_far_matches_with_biased_depth() -> None:
 
 
 def _image_space_setup(seed: int):
-    """Inliers of a mixed scene (3D and 2D points, planes) under image-space refinement, a
-    start pose 2 cm / 1 degree off the truth, and the motion prior at the truth."""
+    """Inliers of a mixed scene (3D and 2D points, planes) under image-space refinement, and a
+    start pose 2 cm / 1 degree off the truth."""
     corr, truth, _ = _scene(seed, n3d=150, n2d=50, n_planes=4, outlier_ratio=0.2)
     corr = dataclasses.replace(corr, focal_length=FX)
     problem = RegistrationProblem(corr, RANSAC, NOISE)
@@ -383,15 +383,14 @@ def _image_space_setup(seed: int):
     start = truth.copy()
     start[:3, :3] = Rotation.from_rotvec(rng.normal(0.0, 0.01, 3)).as_matrix() @ start[:3, :3]
     start[:3, 3] += rng.normal(0.0, 0.02, 3)
-    prior_sigmas = (np.deg2rad(1.0), 0.01)
-    return problem, masks, start, truth, prior_sigmas
+    return problem, masks, start, truth
 
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_image_space_jacobian_matches_finite_differences(seed: int) -> None:
-    problem, masks, start, truth, prior_sigmas = _image_space_setup(seed)
-    linearised = pose_refinement.image_space_terms(problem, start, masks, FX, truth, prior_sigmas)
-    # 5 degrees from the prior: its rotation residual's Jacobian differs from the identity
+    problem, masks, start, truth = _image_space_setup(seed)
+    linearised = pose_refinement.image_space_terms(problem, start, masks, FX)
+    # 5 degrees from the start, where the Jacobian was not built
     rotation = Rotation.from_rotvec([0.0, 0.0, np.deg2rad(5.0)]).as_matrix() @ start[:3, :3]
     translation = start[:3, 3]
     residuals, jacobian = linearised(rotation, translation)
@@ -410,26 +409,25 @@ def test_image_space_jacobian_matches_finite_differences(seed: int) -> None:
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_image_space_refinement_reaches_the_huber_minimum(seed: int) -> None:
     """Our Levenberg-Marquardt ends where scipy's robust least squares on the same residuals
-    does (to a micrometre and a thousandth of a degree), with and without the prior."""
+    does (to a micrometre and a thousandth of a degree)."""
     from scipy.optimize import least_squares
 
-    problem, masks, start, truth, prior_sigmas = _image_space_setup(seed)
-    for prior in (None, truth):
-        refined = pose_refinement.refine_pose_image_space(problem, start, masks, FX, prior, prior_sigmas)
-        linearised = pose_refinement.image_space_terms(problem, start, masks, FX, prior, prior_sigmas)
+    problem, masks, start, truth = _image_space_setup(seed)
+    refined = pose_refinement.refine_pose_image_space(problem, start, masks, FX)
+    linearised = pose_refinement.image_space_terms(problem, start, masks, FX)
 
-        def residuals(x: np.ndarray) -> np.ndarray:
-            return linearised(Rotation.from_rotvec(x[:3]).as_matrix() @ start[:3, :3], start[:3, 3] + x[3:])[0]
+    def residuals(x: np.ndarray) -> np.ndarray:
+        return linearised(Rotation.from_rotvec(x[:3]).as_matrix() @ start[:3, :3], start[:3, 3] + x[3:])[0]
 
-        solution = least_squares(residuals, np.zeros(6), method="trf", loss="huber",
-                                 f_scale=pose_refinement.HUBER_SCALE, xtol=1e-12, ftol=1e-12, gtol=1e-12)
-        reference = np.eye(4)
-        reference[:3, :3] = Rotation.from_rotvec(solution.x[:3]).as_matrix() @ start[:3, :3]
-        reference[:3, 3] = start[:3, 3] + solution.x[3:]
-        distance, angle = _errors(refined, reference)
-        assert distance < 1e-6 and angle < 1e-3
-        moved, _ = _errors(start, truth)
-        assert _errors(refined, truth)[0] < 0.2 * moved  # and it did move towards the truth
+    solution = least_squares(residuals, np.zeros(6), method="trf", loss="huber",
+                             f_scale=pose_refinement.HUBER_SCALE, xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    reference = np.eye(4)
+    reference[:3, :3] = Rotation.from_rotvec(solution.x[:3]).as_matrix() @ start[:3, :3]
+    reference[:3, 3] = start[:3, 3] + solution.x[3:]
+    distance, angle = _errors(refined, reference)
+    assert distance < 1e-6 and angle < 1e-3
+    moved, _ = _errors(start, truth)
+    assert _errors(refined, truth)[0] < 0.2 * moved  # and it did move towards the truth
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

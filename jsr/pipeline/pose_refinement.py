@@ -119,13 +119,11 @@ def refine_pose_image_space(
     transform: np.ndarray,
     masks: list[np.ndarray],
     focal_length: float,
-    prior: np.ndarray | None = None,
-    prior_sigmas: tuple[float, float] = (0.0, 0.0),
 ) -> np.ndarray | None:
     """Least squares on the inliers with residuals shaped like the sensor's noise
     (:func:`image_space_terms`), minimised with a Huber loss (scale 2 sigma) by
     :func:`minimise_huber` from ``transform``. None when too few residuals constrain the pose."""
-    linearised = image_space_terms(problem, transform, masks, focal_length, prior, prior_sigmas)
+    linearised = image_space_terms(problem, transform, masks, focal_length)
     if linearised is None:
         return None
     refined = minimise_huber(linearised, transform[:3, :3], transform[:3, 3], HUBER_SCALE, max_iterations=50)
@@ -141,8 +139,6 @@ def image_space_terms(
     transform: np.ndarray,
     masks: list[np.ndarray],
     focal_length: float,
-    prior: np.ndarray | None,
-    prior_sigmas: tuple[float, float],
 ) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None:
     """The residuals of the inliers ``masks`` as a function ``linearised(rotation (3, 3),
     translation (3,)) -> (residuals (M,), jacobian (M, 6))`` of the pose ``T_map_cam``; None
@@ -157,11 +153,6 @@ def image_space_terms(
     and landmark); each 2D-3D pair gives two reprojection residuals; planes as in
     :func:`refine_pose`. Inliers kept by the depth fallback at ``transform`` (see
     :mod:`jsr.pipeline.pose_scoring`) get no depth residual.
-
-    With a ``prior`` pose (the motion model's prediction) and ``prior_sigmas`` =
-    ``(rotation radians, translation metres)`` both positive, six more residuals pull the pose
-    towards the prediction; this damps the frame-to-frame jitter of scenes whose texture lies
-    at one distance, where a small rotation and a lateral translation explain the data alike.
     """
     m3, m2, mp = masks
     p, q = problem.p[m3], problem.q[m3]
@@ -181,7 +172,6 @@ def image_space_terms(
     # constrain the pose through their reprojection only.
     depth_weight = (np.abs(((q - t0) @ r0)[:, 2] - p[:, 2]) < problem.threshold3[m3]).astype(float)
 
-    use_prior = prior is not None and prior_sigmas[0] > 0 and prior_sigmas[1] > 0
     angular_weight = 1.0 / angular_sigma
     depth_scale = depth_weight / depth_sigma
 
@@ -211,31 +201,12 @@ def image_space_terms(
         parts.append((pc[:, 3] - normals @ translation - pm[:, 3]) / sd)
         d_offsets = np.concatenate([np.cross(translation, normals), -normals], axis=1)
         jacobians.append(d_offsets / sd)
-        if use_prior:
-            prior_rotvec = Rotation.from_matrix(prior[:3, :3].T @ rotation).as_rotvec()
-            parts.append(prior_rotvec / prior_sigmas[0])
-            d_prior = np.zeros((3, 6))
-            d_prior[:, :3] = _left_jacobian_inverse(prior_rotvec) @ prior[:3, :3].T
-            jacobians.append(d_prior / prior_sigmas[0])
-            parts.append((translation - prior[:3, 3]) / prior_sigmas[1])
-            jacobians.append(np.hstack([np.zeros((3, 3)), np.eye(3)]) / prior_sigmas[1])
         return np.concatenate(parts), np.concatenate(jacobians, axis=0)
 
     return linearised
 
 
 HUBER_SCALE = 2.0  # residuals (in sigmas) beyond this weigh linearly, not quadratically
-
-
-def _left_jacobian_inverse(rotvec: np.ndarray) -> np.ndarray:
-    """``(3, 3)`` inverse left Jacobian of SO(3) at ``rotvec``: ``log(Exp(a) Exp(phi)) = phi +
-    J^-1 a`` for small ``a``."""
-    angle = float(np.linalg.norm(rotvec))
-    cross = cross_matrices(rotvec)
-    if angle < 1e-6:
-        return np.eye(3) - 0.5 * cross + cross @ cross / 12.0
-    factor = 1.0 / angle**2 - (1.0 + math.cos(angle)) / (2.0 * angle * math.sin(angle))
-    return np.eye(3) - 0.5 * cross + factor * (cross @ cross)
 
 
 def minimise_huber(linearised: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],

@@ -325,11 +325,7 @@ def register(
     transform = best_transform
     cost, _, masks = problem.score_one(transform)
     refine = refine_pose if corr.focal_length is None else functools.partial(
-        refine_pose_image_space,
-        focal_length=corr.focal_length,
-        prior=initial_guess,
-        prior_sigmas=(np.deg2rad(ransac_cfg.prior_rotation_degrees), ransac_cfg.prior_translation),
-    )
+        refine_pose_image_space, focal_length=corr.focal_length)
     for _ in range(ransac_cfg.refine_rounds):
         refined = refine(problem, transform, masks)
         if refined is None:

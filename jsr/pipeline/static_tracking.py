@@ -161,7 +161,7 @@ def with_depth(state: SceneState, ctx: FrameContext, result: RegistrationResult,
     if result.success:
         problem = RegistrationProblem(corr, config.ransac, config.noise)
         masks = [result.inliers_point3d, result.inliers_point2d, result.inliers_plane]
-        features = image_space_terms(problem, result.transformation, masks, state.intrinsics.fx, None, (0.0, 0.0))
+        features = image_space_terms(problem, result.transformation, masks, state.intrinsics.fx)
     fit = align_depth(source, source_sigma, target, start, config.dense, features)
     if fit is None or fit.pairs < 6:  # the depth took no part
         return None
