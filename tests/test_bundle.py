@@ -21,7 +21,8 @@ from jsr.geometry import (
     rotation_angle,
     transform_points,
 )
-from jsr.pipeline.bundle import BundleProblem, apply_solution, bundle_adjust
+from jsr.pipeline.bundle import BundleProblem, bundle_adjust
+from jsr.pipeline.bundle_solution import apply_solution
 from jsr.pipeline.bundle_jacobian import jacobian_sparsity
 from jsr.pipeline.bundle_noise import BOUNDS, GROUPS, update
 from jsr.pipeline.bundle_scheduler import BundleScheduler

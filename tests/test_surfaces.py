@@ -6,7 +6,7 @@ import numpy as np
 from jsr.geometry import make_transform, rotation_about_axis, transform_points
 from scipy.spatial import cKDTree
 
-from jsr.pipeline.surface_alignment import MAX_ALIGNED_POINTS, align_surfaces, alignment_voxel
+from jsr.pipeline.surface_alignment import CACHED_VOXELS, MAX_ALIGNED_POINTS, _model_at, align_surfaces, alignment_voxel
 from jsr.pipeline.surface_evidence import geometric_constraint, texture_agreement
 from jsr.pipeline.surfaces import SurfaceSample, build_model, sample_surface, thinned
 
@@ -599,3 +599,17 @@ def test_a_models_alignment_descriptors_are_kept_and_give_the_same_alignments():
         assert len(alignments) == len(first) > 0
         for a, b in zip(alignments, first):
             np.testing.assert_array_equal(a.T_model_region, b.T_model_region)
+
+
+def test_a_model_keeps_its_descriptors_at_a_few_voxels_only():
+    """A long-lived model aligned at many voxels (the region decides a large model's voxel)
+    keeps the latest CACHED_VOXELS of them, and other derived values untouched."""
+    points, colors = _box_faces()
+    T_model_camera = make_transform(rotation_about_axis([1.0, 0.0, 0.0], np.pi), [0.0, 0.0, 0.8])
+    model = build_model([(T_model_camera, _view(points, colors, T_model_camera))], VOXEL)
+    model.derived["other"] = 1
+    voxels = [VOXEL * (1.0 + 0.25 * k) for k in range(CACHED_VOXELS + 3)]
+    for voxel in voxels:
+        _model_at(model, voxel, thin=True)
+    kept = sorted(key[1] for key in model.derived if key != "other")
+    assert kept == voxels[-CACHED_VOXELS:] and model.derived["other"] == 1

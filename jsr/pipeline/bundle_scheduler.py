@@ -15,7 +15,8 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import numpy as np
 
 from jsr.config import BundleAdjustmentConfig, NoiseConfig
-from jsr.pipeline.bundle import BundleProblem, BundleResult, BundleSolution, apply_solution
+from jsr.pipeline.bundle import BundleProblem
+from jsr.pipeline.bundle_solution import BundleResult, BundleSolution, apply_solution
 from jsr.pipeline.maps import Map, ObjectMap
 
 logger = logging.getLogger(__name__)

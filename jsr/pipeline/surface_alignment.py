@@ -50,6 +50,9 @@ ICP_STARTS = 48  # ICP runs from at most this many starts, those that fit the sa
 # person-sized model (44000 points at 1 cm) made single frames take 10-50 s on bonn_crowd_people.
 # Objects of 20-30 cm have 900-1900 points at 1 cm and are aligned at full resolution.
 MAX_ALIGNED_POINTS = 2000
+# A large model's alignment voxel follows the region's size (alignment_voxel), so a lost
+# person-sized model would keep one thinned copy per voxel it met, for as long as it lives.
+CACHED_VOXELS = 4
 COLOR_WEIGHT = 1.0  # weight of the neighbourhood colour (RGB in [0, 1]) against FPFH (histograms summing to 1)
 
 
@@ -73,6 +76,9 @@ def _model_at(model: SurfaceModel, voxel: float, thin: bool) -> tuple[SurfaceMod
     ``model.derived``: a lost object's model is aligned to the moving regions of many frames."""
     key = ("aligned at", voxel, thin)
     if key not in model.derived:
+        cached = [k for k in model.derived if isinstance(k, tuple) and k[0] == "aligned at"]
+        for old in cached[: max(len(cached) - CACHED_VOXELS + 1, 0)]:
+            del model.derived[old]  # the oldest first (dicts keep insertion order)
         at = thinned(model, voxel) if thin else model
         model.derived[key] = (at, _features(at, voxel))
     return model.derived[key]
