@@ -89,6 +89,7 @@ def summarise(name: str, runs: list[dict]) -> dict:
     static = not any(r["true_moving_objects"] for r in runs)
     row = {"name": name, "runs": len(runs), "frames": runs[0]["frames"], "static": static,
            "ate_cm": mean([r["ate"] * 100 for r in runs if r["ate"] is not None]),
+           "ate_cm_per_seed": [None if r["ate"] is None else r["ate"] * 100 for r in runs],
            "fps": mean([r["fps"] for r in runs if r["fps"]]),
            "median_ms": mean([r["frame_ms"]["median"] for r in runs]),
            "p95_ms": max(r["frame_ms"]["p95"] for r in runs), "max_ms": max(r["frame_ms"]["max"] for r in runs),
