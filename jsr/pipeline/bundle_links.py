@@ -58,11 +58,11 @@ def linked_groups(num_frames: int, point_frames: np.ndarray, point_landmarks: np
     strong = (shared.data >= min_shared) & (shared.row < shared.col)
     pairs = list(zip(shared.row[strong].tolist(), shared.col[strong].tolist()))
     if pins is not None:
-        def common(older: int, newer: int, kind: int) -> np.ndarray:
-            start, ids = kinds[kind]
+        def common(older: int, newer: int) -> list[np.ndarray]:
+            """The point and the plane landmark ids both keyframes observe."""
             both = np.intersect1d(incidence[older].indices, incidence[newer].indices)
-            return ids[both[(both >= start) & (both < start + len(ids))] - start]
-        pairs = [(a, b) for a, b in pairs if pins(a, b, common(a, b, 0), common(a, b, 1))]
+            return [ids[both[(both >= start) & (both < start + len(ids))] - start] for start, ids in kinds]
+        pairs = [(a, b) for a, b in pairs if pins(a, b, *common(a, b))]
     if not pairs:
         return labels
     a, b = np.array(pairs).T
