@@ -188,3 +188,27 @@ def test_blas_runs_on_one_thread_within_the_block_and_as_before_after():
     with single_threaded_blas():
         assert blas_threads() == [1] * len(before)
     assert blas_threads() == before
+
+
+def test_folders_of_objects_dropped_since_a_flush_are_removed(synth_sequence, tmp_path):
+    """An object written at a flush and merged or dropped as non-rigid later leaves no folder:
+    ``objects/`` lists exactly the objects of ``summary.json``."""
+    from jsr.pipeline.run import ResultsWriter, remove_dropped_object_folders
+
+    for name in ("object_2", "object_7"):  # as earlier flushes would have left them
+        (tmp_path / "objects" / name).mkdir(parents=True)
+        (tmp_path / "objects" / name / "trajectory.tum").write_text(f"# {name}\n")
+    assert remove_dropped_object_folders(tmp_path, {"objects/object_7"}) == ["objects/object_2"]
+    assert [p.name for p in (tmp_path / "objects").iterdir()] == ["object_7"]
+    assert (tmp_path / "objects" / "object_7" / "trajectory.tum").is_file()
+
+    # the writer removes them: this run's reconstructor has no object (its first 3 frames)
+    sequence = open_sequence(synth_sequence, max_frames=3)
+    reconstructor = Reconstructor(load_config(), sequence.intrinsics)
+    for index in range(len(sequence)):
+        reconstructor.process(sequence[index])
+    assert not reconstructor.object_maps
+    ResultsWriter(tmp_path, sequence, load_config()).write_tables(reconstructor)
+    reconstructor.close()
+    assert not list((tmp_path / "objects").iterdir())
+    assert (tmp_path / "static" / "keyframes.tum").is_file()

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import logging
 import platform
+import shutil
 import signal
 import threading
 import time
@@ -84,6 +85,24 @@ def dependency_versions() -> dict[str, str]:
             "open3d": open3d.__version__, "scipy": scipy.__version__}
 
 
+def remove_dropped_object_folders(out_dir: Path, kept: set[str]) -> list[str]:
+    """Remove the ``objects/object_K`` folders of ``out_dir`` not in ``kept`` (``map_folder``
+    names), and return their names. An object written at an earlier flush may since have been
+    merged into another or dropped as non-rigid; its folder would otherwise outlive it and
+    disagree with ``summary.json``. The folder was empty of results when the run began, so
+    every ``object_*`` folder in it is this run's."""
+    objects = Path(out_dir) / "objects"
+    removed = []
+    if objects.is_dir():
+        for folder in sorted(objects.glob("object_*")):
+            name = f"objects/{folder.name}"
+            if folder.is_dir() and name not in kept:
+                shutil.rmtree(folder)
+                removed.append(name)
+                logger.debug("removed %s: the object was merged or dropped since it was written", name)
+    return removed
+
+
 class ResultsWriter:
     """Writes the files of a results folder from the reconstructor's state (atomically)."""
 
@@ -120,6 +139,7 @@ class ResultsWriter:
         )
         for map_ in reconstructor.maps:
             self.write_sparse_map(map_, self.out_dir / map_folder(map_))
+        remove_dropped_object_folders(self.out_dir, {map_folder(m) for m in reconstructor.object_maps})
         for object_map in reconstructor.object_maps:
             timestamps, poses = reconstructor.object_trajectory(object_map)
             write_tum_trajectory(
