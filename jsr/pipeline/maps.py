@@ -314,7 +314,9 @@ class Candidacy:
     ratios (static map against object map explanation of the measurements both matched) over the
     ``evidence_frames`` that gave any; ``motion_frames``: frames in which some test rejected that
     the static map explains the region (its rigid and non-rigid frames are counted on the map:
-    :class:`ObjectMap`).
+    :class:`ObjectMap`). ``free_space_samples``: its sampled pixels found in space the static
+    keyframes saw empty, summed over the ``free_space_frames`` in which most of the region lay
+    there (:func:`~jsr.pipeline.confirmation.in_free_space`).
     """
 
     born: int
@@ -322,6 +324,8 @@ class Candidacy:
     evidence: float = 0.0
     evidence_frames: int = 0
     motion_frames: int = 0
+    free_space_samples: int = 0
+    free_space_frames: int = 0
 
 
 class ObjectMap(Map):
