@@ -4,6 +4,7 @@ and a stop."""
 import hashlib
 import io
 import json
+import time
 from pathlib import Path
 
 import pytest
@@ -143,6 +144,18 @@ def test_stopping_a_batch_interrupts_running_runs_and_says_so(sequences, tmp_pat
 
     monkeypatch.setattr(jsr.batch.task, "STOP_CHECK_SECONDS", 0.0)
     entries = read_manifest_text(sequences, "sequence,name,max_frames\nmissing,first,\nseq,second,8\nseq,third,8\n")
+    run_entry = jsr.batch.task._run_entry
+
+    def first_fails_once_second_runs(entry, out_dir, settings, stop_event):
+        """"first" fails at once, but only after "second" began its run (wrote its config):
+        a worker thread slow to start (a cold first test) had "second" not started yet."""
+        if entry.name == "first":
+            began, deadline = out_dir / "second" / "config.yaml", time.monotonic() + 120.0
+            while not began.exists() and time.monotonic() < deadline:
+                time.sleep(0.01)
+        return run_entry(entry, out_dir, settings, stop_event)
+
+    monkeypatch.setattr(jsr.batch.task, "_run_entry", first_fails_once_second_runs)
     rows = []
 
     def stop_at_first(row):
