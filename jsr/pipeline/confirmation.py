@@ -216,7 +216,9 @@ def in_free_space(state: SceneState, ctx: FrameContext, candidate: ObjectMap) ->
     from frame to frame, and a region wholly in free space in every frame is no less so for
     dipping below the count in one (kitchen_box120, frames 23-27 after the box's jump: 31, 27,
     23, 20 and 31 samples seen through, none agreeing, against 25 asked for: confirmed at frame
-    27 when each frame had to pass alone, at frame 25 now)."""
+    27 when each frame had to pass alone, at frame 25 now). A frame whose share held is recorded
+    in ``candidate.candidacy`` (``free_space_samples``, ``free_space_frames``), so this is asked
+    once per weighed frame (:func:`_weigh_candidate`)."""
     if not state.free_space.enabled:
         return False
     segments = np.flatnonzero(ctx.assignment.segment_owner == candidate.object_id)
