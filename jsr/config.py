@@ -194,6 +194,7 @@ class ObjectsConfig:
     free_space_min_pixels: int = 400
     free_space_share: float = 0.6
     free_space_min_segment_pixels: int = 1000
+    free_space_registered: bool = True
     dormant_after_frames: int = 15
     reidentify_maps: int = 3
 

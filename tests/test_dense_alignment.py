@@ -188,3 +188,65 @@ def test_the_depth_is_trusted_by_the_median_of_the_latest_disagreements():
     assert trusted([0.01, 0.05, 0.015], config)
     assert not trusted([0.01, 0.05, 0.015, 0.03], config)  # the latest three: median 0.03
     assert trusted([0.09], load_config(None, ["dense.trust_within=0"]).dense)  # 0: always
+
+
+def test_free_space_judged_on_the_depth_registration_not_the_keyframe_pose():
+    """FreeSpaceViews.counts with the frame's static samples: the frame is placed on each view
+    by its depth first. A keyframe pose 2 degrees off puts the standing box's samples in front
+    of the wall the view saw behind it (free space "violated" by a static thing); placed by the
+    depth, the box agrees with the view. A box that did move 35 cm towards the camera still
+    violates free space."""
+    from types import SimpleNamespace
+
+    from jsr.pipeline.free_space import FreeSpaceViews
+
+    rng = np.random.default_rng(3)
+    view_pose = moved(np.eye(4), 6.0, [0, 1, 0], [0.15, 0.0, 0.05])
+    stored_pose = moved(view_pose, 2.0, [0.2, 1, 0], [0.01, 0.0, 0.0])  # the keyframe's pose, off
+    keyframes = [SimpleNamespace(keyframe_id=0, frame_index=0, T_map_cam=stored_pose)]
+    views = FreeSpaceViews(CONFIG, INTRINSICS)
+    view_depth = render_depth(room(), view_pose, rng)
+    views.remember(keyframes[0], view_depth, np.zeros((240, 320), bool))
+    surfaces = {0: depth_surface(view_depth, np.ones((240, 320), bool), INTRINSICS, CONFIG.dense, CONFIG.noise)}
+
+    def counts(quads, box_lo, box_hi, registered):
+        depth = render_depth(quads, np.eye(4), rng)
+        # the box's segment: pixels whose point lies within the box (2 cm margin)
+        v, u = np.mgrid[0:240, 0:320]
+        points = np.stack([(u - INTRINSICS.cx) / INTRINSICS.fx * depth, (v - INTRINSICS.cy) / INTRINSICS.fy * depth,
+                           depth], axis=-1)
+        on_box = np.all((points > np.asarray(box_lo) - 0.02) & (points < np.asarray(box_hi) + 0.02), axis=-1)
+        labels = on_box.astype(np.int32)
+        samples = frame_samples(depth, ~on_box, INTRINSICS, CONFIG.dense, CONFIG.noise) if registered else None
+        violations, consistent = views.counts(keyframes, depth, labels, 2, np.eye(4), measured_only=True,
+                                              static_samples=samples, surfaces=surfaces)
+        return violations[1], consistent[1]
+
+    lo, hi = [0.2, 0.6, 2.0], [0.6, 1.0, 2.4]
+    violated, agreeing = counts(room(), lo, hi, registered=False)
+    assert violated >= 10  # the pose error alone makes the static box look moved in
+    violated, agreeing = counts(room(), lo, hi, registered=True)
+    assert violated <= 1 and agreeing > 100
+    # the box moved 35 cm towards the camera: in space the view saw empty, with or without
+    shift = np.array([0.0, 0.0, -0.35])
+    moved_room = room()[:3]
+    size = np.subtract(hi, lo)
+    low = np.add(lo, shift)
+    high = low + size
+    moved_room += [quad(low, [size[0], 0, 0], [0, size[1], 0]), quad(low, [0, 0, size[2]], [0, size[1], 0]),
+                   quad(low, [size[0], 0, 0], [0, 0, size[2]]), quad([high[0], low[1], low[2]], [0, 0, size[2]],
+                                                                     [0, size[1], 0])]
+    violated, agreeing = counts(moved_room, low, high, registered=True)
+    assert violated > 100 and agreeing <= 0.1 * violated
+    # a pose error the view's neighbourhood absorbs (under near_radius samples in the view)
+    # leaves the feature pose as it is
+    _, view = views.views[0]
+    view.T_w_c = moved(view_pose, 0.3, [0.2, 1, 0], [0.002, 0.0, 0.0])
+    samples = frame_samples(render_depth(room(), np.eye(4), rng), None, INTRINSICS, CONFIG.dense, CONFIG.noise)
+    assert views.registered_pose(view, surfaces[0], np.eye(4), samples) is not None
+    assert np.array_equal(views.registered_pose(view, surfaces[0], np.eye(4), samples), np.eye(4))
+    # with the view's pose off by 2 degrees, the frame is placed where the view sees it truly
+    view.T_w_c = stored_pose
+    translation, degrees = pose_error(views.registered_pose(view, surfaces[0], np.eye(4), samples),
+                                      stored_pose @ invert_transform(view_pose))
+    assert translation < 0.005 and degrees < 0.2

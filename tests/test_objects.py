@@ -1253,8 +1253,8 @@ def test_free_space_since_a_frame_counts_only_later_keyframes():
     segments.label_image = None
     ctx = _frame_context(SimpleNamespace(segments=segments), free_space=("all views",))
     asked = []
-    state.free_space.counts = lambda keyframes, depth, labels, count, T_w_c, after_frame=None, measured_only=False: \
-        asked.append(after_frame) or ("later views",)
+    state.free_space.counts = lambda keyframes, depth, labels, count, T_w_c, after_frame=None, measured_only=False, \
+        static_samples=None, surfaces=None: asked.append(after_frame) or ("later views",)
     assert ctx.free_space_since(state, 3) == ("all views",) and asked == []
     assert ctx.free_space_since(state, 7) == ("later views",) and asked == [7]
     reconstructor.close()

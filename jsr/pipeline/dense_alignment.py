@@ -161,6 +161,14 @@ def _pairs(source: np.ndarray, source_sigma: np.ndarray, target: DepthTarget, po
     return source[found][close], q[close], n[close], sigma[close]
 
 
+def samples_on_surface(source: np.ndarray, source_sigma: np.ndarray, target: DepthTarget, pose: np.ndarray,
+                       config: DenseConfig) -> int:
+    """How many of the samples ``source`` ``(N, 3)`` (camera frame, noise ``source_sigma``
+    ``(N,)``) placed by ``pose`` (``T_w_c``) lie on ``target``'s surfaces within the noise (the
+    pairs :func:`align_depth` would use)."""
+    return len(_pairs(source, source_sigma, target, pose, config)[0])
+
+
 def point_to_plane_terms(p: np.ndarray, q: np.ndarray, n: np.ndarray, sigma: np.ndarray):
     """``linearised(rotation, translation) -> (residuals (K,), jacobian (K, 6))`` of the pairs
     ``n . (R p + t - q) / sigma`` with respect to the step ``[w, dt]`` applied as
@@ -289,4 +297,4 @@ def trusted(disagreements: list[float], config: DenseConfig) -> bool:
 
 
 __all__ = ["DenseFit", "DepthSurface", "DepthTarget", "align_depth", "carries", "depth_surface", "depth_target",
-           "disagreement", "frame_samples", "keyframes_target", "normal_spread", "trusted"]
+           "disagreement", "frame_samples", "keyframes_target", "normal_spread", "samples_on_surface", "trusted"]

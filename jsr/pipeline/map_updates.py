@@ -210,17 +210,21 @@ def update_static(state: SceneState, ctx: FrameContext) -> None:
 def remember_depth(state: SceneState, ctx: FrameContext) -> None:
     """Keep the new static keyframe's depth on its static pixels: subsampled for free-space
     tests (objects on) and sampled with normals for the dense term of tracking
-    (``dense.enabled``, :mod:`~jsr.pipeline.dense_alignment`). Where objects (and people)
-    were, nothing is known of either."""
+    (``dense.enabled``, :mod:`~jsr.pipeline.dense_alignment`) and for placing a frame on a
+    free-space view (``objects.free_space_registered``); with the dense term, how far its depth
+    alone moves it from its features' pose (whether the depth is trusted). Where objects (and
+    people) were, nothing is known of any of these."""
     free_space = state.config.objects.enabled and state.config.objects.free_space_detection
-    if not (free_space or state.config.dense.enabled):
+    surfaces = state.config.dense.enabled or (free_space and state.config.objects.free_space_registered)
+    if not (free_space or surfaces):
         return
     unknown = not_static_pixels(state, ctx)
     keyframes = state.static_map.keyframes
     if free_space:
         state.free_space.remember(keyframes[-1], ctx.frame.depth, unknown)
-    if state.config.dense.enabled:
-        measure_disagreement(state, ctx, ~unknown)
+    if surfaces:
+        if state.config.dense.enabled:
+            measure_disagreement(state, ctx, ~unknown)
         for old in keyframes[-state.config.dense.keyframes - 1:-state.config.dense.keyframes]:
             state.depth_surfaces.pop(old.keyframe_id, None)  # only the latest are aligned to
         state.depth_surfaces[keyframes[-1].keyframe_id] = depth_surface(

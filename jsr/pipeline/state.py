@@ -23,7 +23,7 @@ from jsr.io.camera import CameraIntrinsics
 from jsr.io.dataset import Frame
 from jsr.pipeline.association import MatchedFrame, inlier_mask
 from jsr.pipeline.bundle_scheduler import BundleScheduler
-from jsr.pipeline.dense_alignment import DepthSurface
+from jsr.pipeline.dense_alignment import DepthSurface, frame_samples
 from jsr.pipeline.free_space import FreeSpaceViews
 from jsr.pipeline.loop_closure import PlaceIndex
 from jsr.pipeline.maps import Map, ObjectMap
@@ -187,7 +187,8 @@ class SceneState:
     its extent). ``free_space``: subsampled depth of the latest static keyframes (free-space
     tests). ``merged_into``: object id -> the id of the map it was merged into. ``places``: the
     static keyframes' appearance, for loop closure. ``depth_surfaces``: the latest static
-    keyframes' sampled static depth, for the dense term of tracking, and ``depth_disagreements``
+    keyframes' sampled static depth, for the dense term of tracking and for placing a frame on
+    the free-space views, and ``depth_disagreements``
     how far their depth alone moved them from their features' pose (whether the depth is trusted).
     ``focal_length``: for image-space refinement (``ransac.refinement: image``), else None.
     """
@@ -315,7 +316,16 @@ class FrameContext:
         depth all around it (``measured_only``), computed once: the evidence that confirms a
         candidate (:mod:`~jsr.pipeline.confirmation`)."""
         if self.measured_free_space is None:
-            self.measured_free_space = self._counts(state, None, measured_only=True)
+            static_samples = None
+            if state.config.objects.free_space_registered:
+                # the segments no map owns and not left dynamic (-1: unsegmented, left out)
+                static_segment = np.append(self.assignment.segment_owner == 0, False)
+                static_segment[np.asarray(self.dynamic, dtype=np.int64)] = False
+                static = static_segment[self.measurements.segments.label_image]
+                static_samples = frame_samples(self.frame.depth, static, state.intrinsics, state.config.dense,
+                                               state.config.noise)
+            self.measured_free_space = self._counts(state, None, measured_only=True, static_samples=static_samples,
+                                                    surfaces=state.depth_surfaces)
         return self.measured_free_space
 
     def free_space_since(self, state: SceneState, after_frame: int) -> tuple[np.ndarray, np.ndarray]:
@@ -325,9 +335,11 @@ class FrameContext:
             return self.free_space_counts(state)
         return self._counts(state, after_frame)
 
-    def _counts(self, state: SceneState, after_frame: int | None, measured_only: bool = False
-                ) -> tuple[np.ndarray, np.ndarray]:
+    def _counts(self, state: SceneState, after_frame: int | None, measured_only: bool = False,
+                static_samples: tuple[np.ndarray, np.ndarray] | None = None,
+                surfaces: dict[int, DepthSurface] | None = None) -> tuple[np.ndarray, np.ndarray]:
         segments = self.measurements.segments
         return state.free_space.counts(state.static_map.keyframes, self.frame.depth, segments.label_image,
                                        len(segments), self.T_w_c, after_frame=after_frame,
-                                       measured_only=measured_only)
+                                       measured_only=measured_only, static_samples=static_samples,
+                                       surfaces=surfaces)
