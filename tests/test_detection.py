@@ -239,3 +239,34 @@ def test_adjacency_pairs_match_every_pixel_pair_within_the_gap():
                     expected.add((min(labels[y, x], other), max(labels[y, x], other)))
             assert {tuple(p) for p in segment_adjacency_pairs(labels, gap).tolist()} == expected
     assert segment_adjacency_pairs(np.full((5, 5), -1)).shape == (0, 2)
+
+
+def test_depth_offsets_before_are_taken_at_the_previous_frame_adjusted_pose():
+    """The measured-minus-predicted depth of static landmarks in the previous frame, at that
+    frame's pose as its reference keyframe stands now (moved 5 cm towards the wall by bundle
+    adjustment since): a landmark 5 cm in front of the wall is 10 cm off from there. Landmarks
+    not judged, over a depth hole or outside the image count 0 (judged by their prediction)."""
+    from types import SimpleNamespace
+
+    from jsr.io.camera import CameraIntrinsics
+    from jsr.pipeline.maps import PointLandmarks
+    from jsr.pipeline.moving_regions import depth_offsets_before
+    from jsr.pipeline.state import FrameReport
+
+    intrinsics = CameraIntrinsics(fx=100.0, fy=100.0, cx=39.5, cy=29.5, width=80, height=60)
+    depth = np.full((60, 80), 2.0)
+    depth[:, :20] = 0.0  # a hole on the left
+    points = PointLandmarks()
+    positions = np.array([[0.2, 0.0, 1.95], [0.0, 0.1, 1.95], [-0.9, 0.0, 1.95], [5.0, 0.0, 1.95]])
+    ids = points.add(positions, np.zeros((4, 128), np.float32), np.full(4, 0.01), np.zeros((4, 3), np.uint8))
+    keyframe_now = np.eye(4)
+    keyframe_now[2, 3] = 0.05  # where bundle adjustment put the reference keyframe since
+    report = FrameReport(7, 0.0, "7", tracked=True, T_w_c=np.eye(4))
+    report.reference_keyframe, report.T_keyframe_cam = 0, np.eye(4)
+    state = SimpleNamespace(memory=SimpleNamespace(previous_depth=depth), reports=[report], intrinsics=intrinsics,
+                            static_map=SimpleNamespace(points=points, keyframes=[SimpleNamespace(T_map_cam=keyframe_now)]))
+    judged = np.array([True, False, True, True])
+    assert np.allclose(depth_offsets_before(state, ids, judged), [0.10, 0.0, 0.0, 0.0])
+    assert np.allclose(depth_offsets_before(state, ids, None)[:2], [0.10, 0.10])
+    state.memory.previous_depth = None  # the previous frame was not registered
+    assert not depth_offsets_before(state, ids, None).any()

@@ -193,6 +193,7 @@ class Reconstructor:
             with _timed(ctx, "confirmation"):
                 weigh_maps(state, ctx)
         state.memory.previous_static_inliers = static_inlier_landmarks(ctx.static) if ctx.registered else None
+        state.memory.previous_depth = ctx.frame.depth if ctx.registered else None
         with _timed(ctx, "map_update"):
             if ctx.static is not None:
                 if objects_on and self.config.objects.hold_back_beside_moved and \

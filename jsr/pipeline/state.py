@@ -147,7 +147,9 @@ class DetectionMemory:
     evidence would otherwise last one frame); ``previous_mask``: the last frame's ``(H, W)``
     uint8 ownership image (0 static, K object or candidate K, DYNAMIC non-rigid);
     ``previous_static_inliers``: ids of the static landmarks that were inliers of the last
-    frame's static registration (None after a bridged or lost frame).
+    frame's static registration (None after a bridged or lost frame), and ``previous_depth``
+    that frame's ``(H, W)`` depth image (m), to tell which of them the depth shows displaced
+    since.
     """
 
     recent_turns: list[tuple[int, np.ndarray]] = field(default_factory=list)
@@ -155,6 +157,7 @@ class DetectionMemory:
     pending_displaced: list[tuple[np.ndarray, int]] = field(default_factory=list)
     previous_mask: np.ndarray | None = None
     previous_static_inliers: np.ndarray | None = None
+    previous_depth: np.ndarray | None = None
 
 
 @dataclass
