@@ -185,7 +185,7 @@ def test_free_space_confirms_by_the_count_over_the_probation_not_in_each_frame()
     shows none; the latter is not counted at all."""
     from jsr.pipeline.confirmation import in_free_space
 
-    config = load_config(None)
+    config = load_config(None, ["objects.free_space_registered=false"])  # (no views to register on)
     candidate = ObjectMap(5, 10, Candidacy(born=10))
     state = SimpleNamespace(config=config, free_space=SimpleNamespace(enabled=True, min_samples=lambda: 25.0))
     seen_through = []
@@ -193,7 +193,7 @@ def test_free_space_confirms_by_the_count_over_the_probation_not_in_each_frame()
                                              (40, 60, False)]:
         counts = (np.array([0, violations]), np.array([0, consistent]))
         ctx = SimpleNamespace(assignment=SimpleNamespace(segment_owner=np.array([0, 5])),
-                              measured_free_space_counts=lambda state, counts=counts: counts)
+                              measured_free_space_counts=lambda state, static, counts=counts: counts)
         seen_through.append(in_free_space(state, ctx, candidate))
         assert seen_through[-1] == expected, (violations, consistent)
     assert (candidate.candidacy.free_space_samples, candidate.candidacy.free_space_frames) == (91, 4)

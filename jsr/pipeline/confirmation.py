@@ -52,6 +52,7 @@ from scipy.stats import binom, chi2
 from jsr.geometry import invert_transform, transform_points
 from jsr.pipeline.correspondences import depth_thresholds
 from jsr.pipeline.free_space import depth_at_projections
+from jsr.pipeline.map_updates import not_static_pixels
 from jsr.pipeline.maps import ObjectMap
 from jsr.pipeline.object_registration import ObjectTrackingResult
 from jsr.pipeline.registration import scaled_residuals, squared_cost
@@ -224,7 +225,10 @@ def in_free_space(state: SceneState, ctx: FrameContext, candidate: ObjectMap) ->
     segments = np.flatnonzero(ctx.assignment.segment_owner == candidate.object_id)
     if not len(segments):
         return False
-    violations, consistent = ctx.measured_free_space_counts(state)
+    # the frame is placed on each view by the depth of its static pixels: those that keyframe
+    # surfaces are built from (map_updates.not_static_pixels)
+    static = ~not_static_pixels(state, ctx) if state.config.objects.free_space_registered else None
+    violations, consistent = ctx.measured_free_space_counts(state, static)
     moved, seen = int(violations[segments].sum()), int((violations[segments] + consistent[segments]).sum())
     if not (moved > 0 and moved >= state.config.objects.free_space_share * seen):
         return False

@@ -314,18 +314,17 @@ class FrameContext:
             self.free_space = self._counts(state, None)
         return self.free_space
 
-    def measured_free_space_counts(self, state: SceneState) -> tuple[np.ndarray, np.ndarray]:
+    def measured_free_space_counts(self, state: SceneState, static_pixels: np.ndarray | None = None
+                                   ) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`free_space_counts` where space counts as seen empty only if the views measured
         depth all around it (``measured_only``), computed once: the evidence that confirms a
-        candidate (:mod:`~jsr.pipeline.confirmation`)."""
+        candidate (:mod:`~jsr.pipeline.confirmation`). ``static_pixels`` ``(H, W)`` bool: the
+        frame's static pixels, whose depth places the frame on each view first (with
+        ``objects.free_space_registered``; None: at the feature pose)."""
         if self.measured_free_space is None:
             static_samples = None
-            if state.config.objects.free_space_registered:
-                # the segments no map owns and not left dynamic (-1: unsegmented, left out)
-                static_segment = np.append(self.assignment.segment_owner == 0, False)
-                static_segment[np.asarray(self.dynamic, dtype=np.int64)] = False
-                static = static_segment[self.measurements.segments.label_image]
-                static_samples = frame_samples(self.frame.depth, static, state.intrinsics, state.config.dense,
+            if static_pixels is not None:
+                static_samples = frame_samples(self.frame.depth, static_pixels, state.intrinsics, state.config.dense,
                                                state.config.noise)
             self.measured_free_space = self._counts(state, None, measured_only=True, static_samples=static_samples,
                                                     surfaces=state.depth_surfaces)
