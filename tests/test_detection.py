@@ -267,6 +267,7 @@ def test_depth_offsets_before_are_taken_at_the_previous_frame_adjusted_pose():
                             static_map=SimpleNamespace(points=points, keyframes=[SimpleNamespace(T_map_cam=keyframe_now)]))
     judged = np.array([True, False, True, True])
     assert np.allclose(depth_offsets_before(state, ids, judged), [0.10, 0.0, 0.0, 0.0])
-    assert np.allclose(depth_offsets_before(state, ids, None)[:2], [0.10, 0.10])
+    every = np.ones(4, dtype=bool)
+    assert np.allclose(depth_offsets_before(state, ids, every)[:2], [0.10, 0.10])
     state.memory.previous_depth = None  # the previous frame was not registered
-    assert not depth_offsets_before(state, ids, None).any()
+    assert not depth_offsets_before(state, ids, every).any()

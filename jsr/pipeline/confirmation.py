@@ -226,8 +226,8 @@ def in_free_space(state: SceneState, ctx: FrameContext, candidate: ObjectMap) ->
     if not len(segments):
         return False
     # the frame is placed on each view by the depth of its static pixels: those that keyframe
-    # surfaces are built from (map_updates.not_static_pixels)
-    static = ~not_static_pixels(state, ctx) if state.config.objects.free_space_registered else None
+    # surfaces are built from (map_updates.not_static_pixels; made only when first counted)
+    static = (lambda: ~not_static_pixels(state, ctx)) if state.config.objects.free_space_registered else None
     violations, consistent = ctx.measured_free_space_counts(state, static)
     moved, seen = int(violations[segments].sum()), int((violations[segments] + consistent[segments]).sum())
     if not (moved > 0 and moved >= state.config.objects.free_space_share * seen):

@@ -220,8 +220,8 @@ def displaced_landmarks(state: SceneState, ctx: FrameContext, static_inliers: np
     previous = memory.previous_static_inliers
     if config.displaced_share <= 0 or previous is None:
         return []
-    pending = [ids for ids, _ in memory.pending_displaced]
-    previous = np.union1d(previous, np.concatenate(pending)) if pending else previous
+    pending = np.concatenate([ids for ids, _ in memory.pending_displaced] or [np.zeros(0, np.int64)])
+    previous = np.union1d(previous, pending)
     if not len(previous):
         return []
     landmarks = previous[state.static_map.points.active[previous]]
@@ -237,7 +237,7 @@ def displaced_landmarks(state: SceneState, ctx: FrameContext, static_inliers: np
     z = camera_points[:, 2]
     threshold = depth_thresholds(z, state.config.noise)
     kept = np.isin(landmarks, static_inlier_landmarks(static))
-    before = depth_offsets_before(state, landmarks, ~np.isin(landmarks, np.concatenate(pending)) if pending else None)
+    before = depth_offsets_before(state, landmarks, ~np.isin(landmarks, pending))
     displaced = with_depth & ~kept & (np.abs(measured - z - before) > threshold)
     projecting = np.bincount(segment[with_depth], minlength=len(segments))
     displaced_count = np.bincount(segment[displaced], minlength=len(segments))
@@ -255,10 +255,10 @@ def displaced_landmarks(state: SceneState, ctx: FrameContext, static_inliers: np
     return [(group, landmarks[displaced & np.isin(segment, group)]) for group in groups]
 
 
-def depth_offsets_before(state: SceneState, landmarks: np.ndarray, judged: np.ndarray | None) -> np.ndarray:
+def depth_offsets_before(state: SceneState, landmarks: np.ndarray, judged: np.ndarray) -> np.ndarray:
     """``(L,)`` measured minus predicted depth (m) of the static ``landmarks`` in the previous
     frame (``memory.previous_depth`` at that frame's pose, after any bundle adjustment since),
-    for those ``judged`` ``(L,)`` bool (all when None); 0 where that depth is unknown, and for
+    for those ``judged`` ``(L,)`` bool; 0 where that depth is unknown, and for
     the others: a landmark already displaced in an earlier frame (``memory.pending_displaced``)
     is judged against its prediction itself."""
     offsets = np.zeros(len(landmarks))
@@ -268,7 +268,7 @@ def depth_offsets_before(state: SceneState, landmarks: np.ndarray, judged: np.nd
     T_w_previous = current_pose(state.static_map, reports[-1])
     camera_points = transform_points(invert_transform(T_w_previous), state.static_map.points.positions[landmarks])
     _, inside, measured = depth_at_projections(camera_points, depth, state.intrinsics)
-    known = inside & (measured > 0) & (True if judged is None else judged)
+    known = inside & (measured > 0) & judged
     offsets[known] = measured[known] - camera_points[known, 2]
     return offsets
 

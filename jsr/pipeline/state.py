@@ -14,6 +14,7 @@ Also the values a frame's processing returns: :class:`FrameReport`, :class:`MapC
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -314,18 +315,20 @@ class FrameContext:
             self.free_space = self._counts(state, None)
         return self.free_space
 
-    def measured_free_space_counts(self, state: SceneState, static_pixels: np.ndarray | None = None
+    def measured_free_space_counts(self, state: SceneState,
+                                   static_pixels: Callable[[], np.ndarray] | None = None
                                    ) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`free_space_counts` where space counts as seen empty only if the views measured
         depth all around it (``measured_only``), computed once: the evidence that confirms a
-        candidate (:mod:`~jsr.pipeline.confirmation`). ``static_pixels`` ``(H, W)`` bool: the
-        frame's static pixels, whose depth places the frame on each view first (with
-        ``objects.free_space_registered``; None: at the feature pose)."""
+        candidate (:mod:`~jsr.pipeline.confirmation`). ``static_pixels`` gives the frame's
+        ``(H, W)`` bool static pixels, whose depth places the frame on each view first (with
+        ``objects.free_space_registered``; None: at the feature pose); called only when the
+        counts are first computed."""
         if self.measured_free_space is None:
             static_samples = None
             if static_pixels is not None:
-                static_samples = frame_samples(self.frame.depth, static_pixels, state.intrinsics, state.config.dense,
-                                               state.config.noise)
+                static_samples = frame_samples(self.frame.depth, static_pixels(), state.intrinsics,
+                                               state.config.dense, state.config.noise)
             self.measured_free_space = self._counts(state, None, measured_only=True, static_samples=static_samples,
                                                     surfaces=state.depth_surfaces)
         return self.measured_free_space
