@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import re
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -142,7 +143,7 @@ class DetectionConfig:
     min_motion: float = 0.03
     min_motion_degrees: float = 3.0
     displaced_share: float = 0.8
-    displaced_free_space_share: float = 0.5
+    displaced_significance: float = 1e-6
     merge_gap_pixels: int = 2
     min_object_points: int = 15
     confirm_frames: int = 3
@@ -371,7 +372,7 @@ _CONSTRAINTS: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "features.slanted_max_incidence": (lambda v: 0 <= v < 90, "in [0, 90) degrees (0: off)"),
     "objects.shape_radius_px": (lambda v: v > 0, "positive"),
     "detection.displaced_share": (lambda v: 0 <= v <= 1, "in [0, 1] (0: off)"),
-    "detection.displaced_free_space_share": (lambda v: 0 <= v <= 1, "in [0, 1] (0: off)"),
+    "detection.displaced_significance": (lambda v: 0 < v < 1, "in (0, 1)"),
     "objects.shape_min_fitness": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "objects.shape_max_seen_through": (lambda v: 0 <= v <= 1, "in [0, 1]"),
     "objects.shape_min_constraint": (lambda v: v >= 0, "non-negative"),
@@ -422,6 +423,9 @@ _CHOICES: dict[str, tuple[str, ...]] = {
 }
 
 
+_EXPONENT_FLOAT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
+
+
 def _type_name(expected: Any) -> str:
     return getattr(expected, "__name__", str(expected))
 
@@ -437,6 +441,8 @@ def _coerce(key: str, value: Any, expected: Any) -> Any:
     elif expected is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             return float(value)
+        if isinstance(value, str) and _EXPONENT_FLOAT.fullmatch(value.strip()):
+            return float(value)  # YAML 1.1 reads 1e-6 (no dot) as a string
     elif expected is str:
         if isinstance(value, str):
             return value

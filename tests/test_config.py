@@ -81,6 +81,19 @@ def test_bad_overrides():
         load_config(None, ["ransac=5"])
 
 
+def test_floats_in_exponent_notation(tmp_path):
+    """YAML 1.1 reads 1e-6 (no dot) as a string; a float key takes it as the number, from a
+    file and from --set alike, and an int key does not."""
+    assert load_config(None, ["detection.displaced_significance=1e-9"]).detection.displaced_significance == 1e-9
+    path = tmp_path / "c.yaml"
+    path.write_text("detection:\n  displaced_significance: 2E-7\n")
+    assert load_config(path).detection.displaced_significance == 2e-7
+    with pytest.raises(ConfigError, match="ransac.min_matches"):
+        load_config(None, ["ransac.min_matches=1e1"])
+    with pytest.raises(ConfigError, match="displaced_significance"):
+        load_config(None, ["detection.displaced_significance=1e-x"])
+
+
 def test_missing_config_file(tmp_path):
     with pytest.raises(ConfigError, match="does not exist"):
         load_config(tmp_path / "nope.yaml")

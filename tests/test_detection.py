@@ -8,7 +8,6 @@ import pytest
 
 from jsr.config import DetectionConfig
 from jsr.pipeline.detection import (
-    DISPLACED_MIN_FACTOR,
     MIN_DISPLACED_PER_SEGMENT,
     detect_moving_segments,
     displaced_landmark_groups,
@@ -173,53 +172,43 @@ def test_merge_with_a_non_moving_segment_in_between():
     assert merge_adjacent_moving_segments(segments, [0, 1, 2]) == [[0, 1, 2]]
 
 
-def _displaced_scene():
-    """Segments 0 and 1 touch; segment 2 stands apart; segments 3 and 4 touch segment 2.
+def _displaced_scene(rest_projecting: int):
+    """Segments 0 and 1 touch; segment 2 stands apart; segments 3 and 4 touch segment 2;
+    segment 5 (below them all) is the rest of the frame, with ``rest_projecting`` landmarks
+    none of which is displaced.
 
-    Displaced / projecting landmarks: 6/6, 7/7, 9/9, 1/4 (segment 3: mostly still in place),
-    1/1 (segment 4: a single landmark, as often a depth edge as motion).
+    Displaced / projecting landmarks: 5/5, 4/4, 6/7, 1/4 (segment 3: mostly still in place),
+    1/1 (segment 4: a single landmark, as often a depth edge as motion), 0/rest_projecting.
     """
-    labels = np.full((4, 14), -1)
-    labels[:, 0:3], labels[:, 3:5], labels[:, 8:10], labels[:, 10:12], labels[:, 12:14] = 0, 1, 2, 3, 4
-    segments = _segments(labels, [[], [], [], [], []])
-    return segments, np.array([6, 7, 9, 1, 1]), np.array([6, 7, 9, 4, 1])
+    labels = np.full((6, 14), -1)
+    labels[:4, 0:3], labels[:4, 3:5], labels[:4, 8:10], labels[:4, 10:12], labels[:4, 12:14] = 0, 1, 2, 3, 4
+    labels[4:, :] = 5
+    segments = _segments(labels, [[], [], [], [], [], []])
+    return segments, np.array([5, 4, 6, 1, 1, 0]), np.array([5, 4, 7, 4, 1, rest_projecting])
 
 
-def test_displaced_landmarks_of_touching_segments_count_together():
-    """An object split over touching segments (6 + 7 displaced landmarks) moves although
-    neither segment alone has the 10 that detection by displaced landmarks needs; segment 2
-    with 9 does not, and neither segment 3 (1 of 4 displaced) nor segment 4 (its one
-    landmark) brings it to 10."""
-    segments, displaced, projecting = _displaced_scene()
-    config = DetectionConfig(min_segment_features=5, displaced_share=0.8, displaced_free_space_share=0.0)
-    assert DISPLACED_MIN_FACTOR * config.min_segment_features == 10 and MIN_DISPLACED_PER_SEGMENT == 2
-    no_free_space = np.zeros(5, dtype=np.int64)
-    supported = np.ones(5, dtype=bool)
-    groups = displaced_landmark_groups(segments, displaced, projecting, supported, no_free_space,
-                                       no_free_space, 25, config)
-    assert groups == [[0, 1]]
-    # a segment the static map shows in place (features that are static inliers) is no candidate
-    supported[1] = False
-    assert displaced_landmark_groups(segments, displaced, projecting, supported, no_free_space,
-                                     no_free_space, 25, config) == []
-
-
-@pytest.mark.parametrize("share, violations, expected", [
-    (0.5, 60, [[2]]),   # 60 of 100 sampled pixels in free space: 6 displaced landmarks suffice
-    (0.5, 40, []),      # 40 of 100: not enough free space
-    (0.0, 60, []),      # the rule switched off
-    (0.5, 20, []),      # 20 of 30: a share above 0.5 but fewer samples than free space needs
+@pytest.mark.parametrize("rest_projecting, expected, expected_without_1", [
+    (64, [[0, 1]], []),                # a fifth of the frame's landmarks displaced (17 of 85: blur)
+    (1000, [[0, 1], [2]], [[0], [2]]),  # 17 of 1021: tested at the floor of 1 in 20
 ])
-def test_free_space_lets_fewer_displaced_landmarks_suffice(share, violations, expected):
-    segments, displaced, projecting = _displaced_scene()
-    displaced[1] = 0  # segments 0 and 1 no longer make a group of 13
-    displaced[2] = projecting[2] = 6
-    config = DetectionConfig(min_segment_features=5, displaced_share=0.8, displaced_free_space_share=share)
-    in_free_space = np.array([0, 0, violations, 0, 0])
-    agreeing = np.array([0, 0, (100 if violations > 20 else 30) - violations, 0, 0])
-    groups = displaced_landmark_groups(segments, displaced, projecting, np.ones(5, dtype=bool), in_free_space,
-                                       agreeing, 25, config)
+def test_displaced_landmarks_are_weighed_against_the_frame_and_count_together(rest_projecting, expected,
+                                                                               expected_without_1):
+    """A group moves when the frame's own share of displaced landmarks makes its count
+    unlikely (binomial tail below 1e-6). Where a fifth of them are displaced, 9 of 9 over
+    two touching segments move, though neither segment alone (5 of 5, 4 of 4) would, and 6 of
+    7 apart do not; where few are, 6 of 7 do. Segment 3 (1 of 4) is no candidate, nor
+    segment 4 (its one landmark) or segment 5 (none displaced)."""
+    segments, displaced, projecting = _displaced_scene(rest_projecting)
+    config = DetectionConfig(min_segment_features=5, displaced_share=0.8, displaced_significance=1e-6)
+    assert MIN_DISPLACED_PER_SEGMENT == 2
+    supported = np.ones(6, dtype=bool)
+    groups = displaced_landmark_groups(segments, displaced, projecting, supported, config)
     assert groups == expected
+    # a segment the static map shows in place (features that are static inliers) is no
+    # candidate: segment 0's 5 of 5 alone are chance in the blurred frame, not in the quiet one
+    supported[1] = False
+    groups = displaced_landmark_groups(segments, displaced, projecting, supported, config)
+    assert groups == expected_without_1
 
 
 def test_adjacency_pairs_match_every_pixel_pair_within_the_gap():

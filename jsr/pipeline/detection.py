@@ -21,8 +21,6 @@ from jsr.pipeline.measurements import Segments
 
 logger = logging.getLogger(__name__)
 
-# displaced landmarks (no match at all) are weaker evidence than outliers: twice as many needed
-DISPLACED_MIN_FACTOR = 2
 # one displaced landmark is a depth edge as often as motion: a segment joins a group with more
 # (kitchen_box120 frame 20: two static segments with 1 each joined the box's group)
 MIN_DISPLACED_PER_SEGMENT = 2
@@ -210,9 +208,6 @@ def displaced_landmark_groups(
     displaced: np.ndarray,
     projecting: np.ndarray,
     little_static_support: np.ndarray,
-    free_space_violations: np.ndarray,
-    free_space_consistent: np.ndarray,
-    min_free_space_samples: float,
     config: DetectionConfig,
 ) -> list[list[int]]:
     """Groups of touching segments that moved by their displaced static landmarks.
@@ -220,35 +215,26 @@ def displaced_landmark_groups(
     All arrays are ``(S,)`` over the segments: ``displaced`` and ``projecting`` count the static
     landmarks (inliers in the previous frame) that project into each segment with depth and of
     those the ones whose surface is no longer there; ``little_static_support`` marks segments
-    hardly shown static by their features; ``free_space_violations`` / ``free_space_consistent``
-    count sampled pixels in space the static keyframes saw empty / on a surface they saw.
+    hardly shown static by their features.
 
     A segment is a candidate when it has displaced landmarks, at least
     ``config.displaced_share`` of those projecting into it, and little static support.
     Touching candidates (``config.merge_gap_pixels``) form a group: an object split over
     segments (a cylinder's lit and shaded sides) counts its landmarks together. A group moves
-    with at least DISPLACED_MIN_FACTOR x ``config.min_segment_features`` displaced landmarks,
-    or ``config.min_segment_features`` of them when at least
-    ``config.displaced_free_space_share`` of its sampled pixels, and ``min_free_space_samples``
-    at least, lie in free space (a small object that moved a little way over its old place).
+    when so many of its landmarks are displaced that the frame's own share of displaced
+    landmarks (depth noise, blur, depth edges; :func:`outlier_significance`, floored at 0.05)
+    makes that less likely than ``config.displaced_significance``: 5 of 5 in most frames, 10
+    of 10 in a blurred one where a fifth of all landmarks are displaced.
     Returns the groups, each ascending, ordered by their smallest member.
     """
-    displaced = np.asarray(displaced)
+    displaced, projecting = np.asarray(displaced), np.asarray(projecting)
     candidates = (displaced >= MIN_DISPLACED_PER_SEGMENT) & (
-        displaced >= config.displaced_share * np.asarray(projecting)) & np.asarray(
-        little_static_support, dtype=bool)
-    violations = np.asarray(free_space_violations)
-    sampled = violations + np.asarray(free_space_consistent)
+        displaced >= config.displaced_share * projecting) & np.asarray(little_static_support, dtype=bool)
+    frame_share = float(displaced.sum()) / max(int(projecting.sum()), 1)
     moving = []
     for group in merge_adjacent_moving_segments(segments, np.flatnonzero(candidates).tolist(),
                                                 config.merge_gap_pixels):
-        count = int(displaced[group].sum())
-        in_free_space = int(violations[group].sum())
-        if count >= DISPLACED_MIN_FACTOR * config.min_segment_features or (
-            config.displaced_free_space_share > 0
-            and count >= config.min_segment_features
-            and in_free_space >= min_free_space_samples
-            and in_free_space >= config.displaced_free_space_share * int(sampled[group].sum())
-        ):
+        chance = outlier_significance(int(displaced[group].sum()), int(projecting[group].sum()), frame_share)
+        if float(chance) < config.displaced_significance:
             moving.append(group)
     return moving

@@ -205,11 +205,10 @@ def displaced_landmarks(state: SceneState, ctx: FrameContext, static_inliers: np
     ones, with enough of them move (:func:`~jsr.pipeline.detection.displaced_landmark_groups`).
     A static surface that lost its matches to blur keeps its depth; one that a nearer
     static surface hides keeps most of its landmarks elsewhere.
-    Measured (share 0.8): no segment on redkitchen300 or bonn_crowd200, one static
-    segment of kitchen_box120 with 6 displaced landmarks, objects with 10-37 (one segment
-    each). Stop 20: synth_two seed 4's cylinder, jumped, lay in two segments with 6 and 7
-    displaced landmarks; synth_two_sim seed 4's, in one segment with 5 of 5 displaced and
-    56% of its pixels in free space (where free-space detection wants 60%).
+    Measured (December 2026, seed 0): no static segment of redkitchen300, bonn_crowd200 or
+    kitchen_box120 with more than 6 displaced landmarks (6 of 6 in redkitchen300's blurred
+    frame 179, where 17% of all are: chance 3e-5), objects with 5-37; a box 2.4 m away (set 3
+    bonn_s4_two_sim, frame 10) with 7 of 8 (chance 8e-8), which a fixed count of 10 missed.
 
     Returns ``(group, landmark ids)`` pairs: each group's segments and the static landmarks
     displaced in it."""
@@ -241,10 +240,8 @@ def displaced_landmarks(state: SceneState, ctx: FrameContext, static_inliers: np
     displaced = with_depth & ~kept & (np.abs(measured - z - before) > threshold)
     projecting = np.bincount(segment[with_depth], minlength=len(segments))
     displaced_count = np.bincount(segment[displaced], minlength=len(segments))
-    violations, consistent = ctx.free_space_counts(state)
     groups = displaced_landmark_groups(segments, displaced_count, projecting,
-                                       little_static_support(measurements, static_inliers), violations,
-                                       consistent, state.free_space.min_samples(), config)
+                                       little_static_support(measurements, static_inliers), config)
     # seen through: the surface measured behind them (the background an object left, or
     # an object that turned away over its old place)
     seen_through = np.bincount(segment[displaced & (measured > z)], minlength=len(segments))
