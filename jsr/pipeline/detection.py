@@ -80,27 +80,28 @@ def segment_outlier_stats(
     return SegmentOutlierStats(matched_counts, outlier_counts, ratio)
 
 
-def outlier_significance(outliers: np.ndarray, matched: np.ndarray, base_ratio: float) -> np.ndarray:
-    """``(S,)`` probability of at least ``outliers`` outliers among ``matched`` features if they
-    were outliers at the frame's ``base_ratio`` only (binomial upper tail): small values mean the
-    segment has far more outliers than mismatches and noise explain."""
+def chance_of_at_least(hits: np.ndarray, trials: np.ndarray, base_ratio: float) -> np.ndarray:
+    """``(S,)`` probability of at least ``hits`` among ``trials`` if each were a hit at the
+    frame's ``base_ratio`` only (binomial upper tail; the ratio clipped to [0.05, 0.95]): a
+    segment's outliers among its matched features, or a group's displaced landmarks among
+    those projecting into it. Small values mean far more than mismatches and noise explain."""
     from scipy.stats import binom
 
     ratio = float(np.clip(base_ratio, 0.05, 0.95))
-    return binom.sf(np.asarray(outliers) - 1, np.asarray(matched), ratio)
+    return binom.sf(np.asarray(hits) - 1, np.asarray(trials), ratio)
 
 
 def _beyond_chance(stats: SegmentOutlierStats, matched: np.ndarray, inlier: np.ndarray,
                    exclude: np.ndarray | None, config: DetectionConfig) -> np.ndarray:
     """``(S,)`` bool: segments holding more outliers than the frame's overall outlier ratio
-    makes likely (:func:`outlier_significance` below ``config.significance``; all True when
+    makes likely (:func:`chance_of_at_least` below ``config.significance``; all True when
     that is 1), counting the matched measurements not in ``exclude``."""
     if config.significance >= 1.0:
         return np.ones(len(stats.matched), dtype=bool)
     counted = np.asarray(matched, dtype=bool) & ~_mask(exclude, len(np.asarray(matched)), "exclude", False)
     total = int(counted.sum())
     base = float((counted & ~np.asarray(inlier, dtype=bool)).sum()) / total if total else 0.0
-    return outlier_significance(stats.outliers, stats.matched, base) < config.significance
+    return chance_of_at_least(stats.outliers, stats.matched, base) < config.significance
 
 
 def detect_moving_segments(
@@ -115,7 +116,7 @@ def detect_moving_segments(
     ignoring the measurements in ``exclude`` (e.g. those already given to an object map).
 
     With ``config.significance`` below 1, a segment must also hold more outliers than the
-    frame's overall outlier ratio makes likely (:func:`outlier_significance`): on real data a
+    frame's overall outlier ratio makes likely (:func:`chance_of_at_least`): on real data a
     quarter of all static matches can be outliers, and a static segment with 4 outliers in 6
     matches is chance, not motion.
     """
@@ -222,7 +223,7 @@ def displaced_landmark_groups(
     Touching candidates (``config.merge_gap_pixels``) form a group: an object split over
     segments (a cylinder's lit and shaded sides) counts its landmarks together. A group moves
     when so many of its landmarks are displaced that the frame's own share of displaced
-    landmarks (depth noise, blur, depth edges; :func:`outlier_significance`, floored at 0.05)
+    landmarks (depth noise, blur, depth edges; :func:`chance_of_at_least`)
     makes that less likely than ``config.displaced_significance``: 5 of 5 in most frames, 10
     of 10 in a blurred one where a fifth of all landmarks are displaced.
     Returns the groups, each ascending, ordered by their smallest member.
@@ -234,7 +235,7 @@ def displaced_landmark_groups(
     moving = []
     for group in merge_adjacent_moving_segments(segments, np.flatnonzero(candidates).tolist(),
                                                 config.merge_gap_pixels):
-        chance = outlier_significance(int(displaced[group].sum()), int(projecting[group].sum()), frame_share)
+        chance = chance_of_at_least(int(displaced[group].sum()), int(projecting[group].sum()), frame_share)
         if float(chance) < config.displaced_significance:
             moving.append(group)
     return moving
