@@ -49,9 +49,9 @@ import logging
 import numpy as np
 from scipy.stats import binom, chi2
 
-from jsr.geometry import invert_transform, transform_points
+from jsr.geometry import transform_points
 from jsr.pipeline.correspondences import depth_thresholds
-from jsr.pipeline.free_space import depth_at_projections
+from jsr.pipeline.free_space import depth_at_map_points
 from jsr.pipeline.map_updates import not_static_pixels
 from jsr.pipeline.maps import ObjectMap
 from jsr.pipeline.object_registration import ObjectTrackingResult
@@ -190,8 +190,7 @@ def depth_misfit(state: SceneState, ctx: FrameContext, T_map_cam: np.ndarray, po
     measured depth is not nearer than theirs by more than the threshold count (one hidden
     behind something proves nothing). Were the points where the depth says, the sum would be a
     chi-square with one degree per point."""
-    camera = transform_points(invert_transform(T_map_cam), points)
-    _, inside, measured = depth_at_projections(camera, ctx.frame.depth, state.intrinsics)
+    camera, _, inside, measured = depth_at_map_points(points, T_map_cam, ctx.frame.depth, state.intrinsics)
     z = camera[:, 2]
     threshold = depth_thresholds(z, state.config.noise)
     counted = inside & (measured > 0) & (hidden_count | (measured >= z - threshold))

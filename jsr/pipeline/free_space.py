@@ -171,6 +171,17 @@ def depth_at_projections(camera_points: np.ndarray, depth: np.ndarray, intrinsic
     return (u, v), inside, measured
 
 
+def depth_at_map_points(points: np.ndarray, T_map_cam: np.ndarray, depth: np.ndarray, intrinsics: CameraIntrinsics
+                        ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray, np.ndarray]:
+    """``(N, 3)`` map-frame points (landmarks) seen from the camera at ``T_map_cam`` (4x4,
+    camera to map) in ``depth`` ``(H, W)``: the points in the camera frame ``(N, 3)``, and as
+    :func:`depth_at_projections` their pixels, whether they fall in the image and the depth
+    measured there."""
+    camera_points = transform_points(invert_transform(T_map_cam), points)
+    pixels, inside, measured = depth_at_projections(camera_points, depth, intrinsics)
+    return camera_points, pixels, inside, measured
+
+
 class FreeSpaceViews:
     """The subsampled static depth of the latest ``FREE_SPACE_VIEWS`` static keyframes, by
     keyframe id, and the free-space tests against them. The keyframes' poses are read from the

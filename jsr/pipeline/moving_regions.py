@@ -14,9 +14,8 @@ import logging
 
 import numpy as np
 
-from jsr.geometry import invert_transform, transform_points
 from jsr.pipeline.detection import detect_moving_segments, displaced_landmark_groups, merge_adjacent_moving_segments
-from jsr.pipeline.free_space import depth_at_projections
+from jsr.pipeline.free_space import depth_at_map_points
 from jsr.pipeline.map_updates import start_object
 from jsr.pipeline.measurements import FrameMeasurements
 from jsr.pipeline.ownership import pixel_box
@@ -224,8 +223,8 @@ def displaced_landmarks(state: SceneState, ctx: FrameContext, static_inliers: np
     if not len(previous):
         return []
     landmarks = previous[state.static_map.points.active[previous]]
-    camera_points = transform_points(invert_transform(T_w_c), state.static_map.points.positions[landmarks])
-    (u, v), inside, measured = depth_at_projections(camera_points, frame.depth, state.intrinsics)
+    camera_points, (u, v), inside, measured = depth_at_map_points(state.static_map.points.positions[landmarks], T_w_c,
+                                                                  frame.depth, state.intrinsics)
     with_depth = inside & (measured > 0)
     if not with_depth.any():
         return []
@@ -263,8 +262,8 @@ def depth_offsets_before(state: SceneState, landmarks: np.ndarray, judged: np.nd
     if depth is None or not reports or not reports[-1].tracked or not len(landmarks):
         return offsets
     T_w_previous = current_pose(state.static_map, reports[-1])
-    camera_points = transform_points(invert_transform(T_w_previous), state.static_map.points.positions[landmarks])
-    _, inside, measured = depth_at_projections(camera_points, depth, state.intrinsics)
+    camera_points, _, inside, measured = depth_at_map_points(state.static_map.points.positions[landmarks],
+                                                             T_w_previous, depth, state.intrinsics)
     known = inside & (measured > 0) & judged
     offsets[known] = measured[known] - camera_points[known, 2]
     return offsets

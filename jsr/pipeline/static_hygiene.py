@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from jsr.config import Config
 from jsr.io.dataset import Frame
 from jsr.pipeline.classify import segment_of_planes
-from jsr.pipeline.free_space import depth_at_projections
+from jsr.pipeline.free_space import depth_at_map_points
 from jsr.pipeline.state import FrameContext, SceneState, StaticRegistration
 
 logger = logging.getLogger(__name__)
@@ -162,9 +162,8 @@ def retire_vacated_landmarks(state: SceneState, frame: Frame, T_w_c: np.ndarray,
     ids = state.static_map.recent_point_landmarks(None)
     if not len(ids):
         return
-    camera = (points.positions[ids] - T_w_c[:3, 3]) @ T_w_c[:3, :3]
+    camera, (u, v), inside, measured = depth_at_map_points(points.positions[ids], T_w_c, frame.depth, state.intrinsics)
     z = camera[:, 2]
-    (u, v), inside, measured = depth_at_projections(camera, frame.depth, state.intrinsics)
     seen = measured > 0
     noise = state.config.noise
     # the free-space test's margins: only a surface clearly gone counts, not a depth edge
