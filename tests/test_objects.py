@@ -7,13 +7,14 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from jsr.config import load_config
 from jsr.evaluate.objects import object_pose_error
-from jsr.geometry import rotation_angle
+from jsr.geometry import make_transform, rotation_angle, transform_points
 from jsr.io.dataset import open_sequence
 from jsr.pipeline.classify import complete_segments
-from jsr.pipeline.free_space import DepthView, FreeSpaceViews, depth_at_projections, free_space_violations
+from jsr.pipeline.free_space import DepthView, FreeSpaceViews, depth_at_map_points, free_space_violations
 from jsr.pipeline.map_merging import merge_maps
 from jsr.pipeline.map_updates import map_would_grow
 from jsr.pipeline.moving_regions import CANDIDATE_DETAIL_FRAMES
@@ -702,9 +703,30 @@ def _static_landmark_pixels(reconstructor, T_w_c):
     of them: the vacated test looks at every one) in view from ``T_w_c``."""
     points = reconstructor.static_map.points
     ids = reconstructor.static_map.recent_point_landmarks(None)
-    camera = (points.positions[ids] - T_w_c[:3, 3]) @ T_w_c[:3, :3]
-    (u, v), inside, _ = depth_at_projections(camera, np.zeros((HEIGHT, WIDTH)), reconstructor.intrinsics)
+    camera, (u, v), inside, _ = depth_at_map_points(points.positions[ids], T_w_c, np.zeros((HEIGHT, WIDTH)),
+                                                     reconstructor.intrinsics)
     return ids[inside], np.stack([u[inside], v[inside]], axis=1), camera[inside, 2]
+
+
+def test_map_points_are_read_in_a_depth_image_from_the_camera_pose():
+    """free_space.depth_at_map_points: world points placed at chosen pixels and depths of a
+    camera turned and moved in the world come back at those pixels, with the depth measured
+    there; a point behind the camera, and one outside the image, are not inside."""
+    intrinsics = SimpleNamespace(fx=300.0, fy=300.0, cx=WIDTH / 2, cy=HEIGHT / 2)
+    T_w_c = make_transform(Rotation.from_euler("xyz", [10, -25, 5], degrees=True).as_matrix(), [0.3, -0.2, 1.1])
+    pixels = np.array([[10, 20], [160, 120], [300, 230], [200, 50]])
+    z = np.array([0.8, 2.0, 3.5, 1.2])
+    camera = np.column_stack([(pixels[:, 0] - intrinsics.cx) / intrinsics.fx * z,
+                              (pixels[:, 1] - intrinsics.cy) / intrinsics.fy * z, z])
+    camera = np.vstack([camera, [0.0, 0.0, -1.0], [5.0, 0.0, 1.0]])  # behind; far off to the side
+    world = transform_points(T_w_c, camera)
+    depth = np.zeros((HEIGHT, WIDTH), np.float32)
+    depth[pixels[:, 1], pixels[:, 0]] = z + 0.01  # measured 1 cm behind each
+    seen, (u, v), inside, measured = depth_at_map_points(world, T_w_c, depth, intrinsics)
+    np.testing.assert_allclose(seen, camera, atol=1e-9)
+    assert inside.tolist() == [True, True, True, True, False, False]
+    np.testing.assert_array_equal(np.stack([u[:4], v[:4]], axis=1), pixels)
+    np.testing.assert_allclose(measured, np.r_[z + 0.01, 0.0, 0.0], atol=1e-6)
 
 
 @pytest.mark.parametrize("window_px", [0, 5])
