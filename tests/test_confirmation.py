@@ -197,3 +197,35 @@ def test_free_space_confirms_by_the_count_over_the_probation_not_in_each_frame()
         seen_through.append(in_free_space(state, ctx, candidate))
         assert seen_through[-1] == expected, (violations, consistent)
     assert (candidate.candidacy.free_space_samples, candidate.candidacy.free_space_frames) == (91, 4)
+
+
+@pytest.mark.parametrize("at_rest", [False, True])
+def test_depth_misfit_counts_against_rigidity_only_in_a_frame_that_moved_it(at_rest):
+    """A candidate whose registration has no outliers but half of whose landmarks the frame
+    sees through (the depth 1 m behind them): not rigid when it was registered away from its
+    last world pose (a limb moved against the torso), rigid when that pose still explains it
+    (``at_rest``: nothing of it moved in this frame, so the misfit is the landmarks' and the
+    sensor's error; set 3 bonn_s4_two_sim's box at rest, 2.4 m away)."""
+    from jsr.pipeline.confirmation import _rigid
+
+    config = load_config(None)
+    intrinsics = synth_intrinsics(WIDTH, HEIGHT)
+    points = _points(count=30)
+    measurements = SimpleNamespace(points=points, planes=[], frame_index=1)
+    object_map = ObjectMap(1, 0)
+    _map_of(points, np.eye(4), object_map)
+    static_map = _map_of(points, np.eye(4))
+    object_matched, object_result = _registration(measurements, object_map, np.eye(4), config)
+    static_matched, static_result = _registration(measurements, static_map, np.eye(4), config)
+    depth = np.zeros((HEIGHT, WIDTH), np.float32)
+    u, v = np.round(points.pixels).astype(int).T
+    depth[v, u] = points.points[:, 2]
+    depth[v[:15], u[:15]] += 1.0
+    outcome = ObjectTrackingResult(object_map, frame_matched=object_matched, frame_result=object_result,
+                                   at_rest=at_rest)
+    state = SimpleNamespace(config=config, intrinsics=intrinsics)
+    ctx = SimpleNamespace(frame=SimpleNamespace(depth=depth, index=1),
+                          static=StaticRegistration(static_matched, static_result),
+                          assignment=SimpleNamespace(point_owner=np.zeros(len(points), np.int64)))
+    assert object_result.num_matches - object_result.num_inliers == 0
+    assert _rigid(state, ctx, outcome) == at_rest

@@ -46,6 +46,7 @@ class ObjectTrackingResult:
     segment_pairs_tried: int = 0
     pose_from_surface: bool = False  # re-identified by a surface alignment alone
     moved_from_rest: bool = False  # registered away from its last world pose (:func:`jsr.pipeline.object_tracking.kept_at_rest`)
+    at_rest: bool = False  # kept at its last world pose, which explains its registration (the same function)
 
     @property
     def frame_success(self) -> bool:

@@ -68,8 +68,8 @@ def kept_at_rest(config: Config, outcome: ObjectTrackingResult, resting_T_o_c: n
     """``outcome`` with its registration replaced by one at ``resting_T_o_c`` (4x4, camera to
     object map frame: the object's last world pose seen from this camera) when that pose
     explains the registration's inliers nearly as well as the registered pose: its
-    :func:`pose_cost` is at most ``objects.resting_max_extra_cost`` higher. Else ``outcome``
-    (marked ``moved_from_rest``).
+    :func:`pose_cost` is at most ``objects.resting_max_extra_cost`` higher (marked
+    ``at_rest``). Else ``outcome`` (marked ``moved_from_rest``).
 
     Why: a resting object registered anew each frame wanders within the noise (a cylinder
     about its axis by degrees over a sequence), and every keyframe taken at a wandered pose
@@ -95,8 +95,8 @@ def kept_at_rest(config: Config, outcome: ObjectTrackingResult, resting_T_o_c: n
     logger.debug("frame %d: object %d at rest (its last world pose costs %.1f more)", frame_index, object_id,
                  extra)
     if outcome.segment_success:
-        return dataclasses.replace(outcome, segment_result=resting)
-    return dataclasses.replace(outcome, frame_result=resting)
+        return dataclasses.replace(outcome, segment_result=resting, at_rest=True)
+    return dataclasses.replace(outcome, frame_result=resting, at_rest=True)
 
 
 def static_segments(config: Config, ctx: FrameContext) -> np.ndarray:
