@@ -61,7 +61,6 @@ def first_motion_frame(root, true_id: int) -> int:
 def true_object_poses(root, true_id: int = 1):
     """``(F, 4, 4)`` true T_w_o of object ``true_id`` per frame, and the first frame it moved in."""
     rows = np.loadtxt(root / "objects" / f"object_{true_id}.txt")
-    from scipy.spatial.transform import Rotation
 
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
     poses[:, :3, :3] = Rotation.from_quat(rows[:, 4:8]).as_matrix()
@@ -135,7 +134,6 @@ def test_object_trajectory_moves_with_its_bundle_adjusted_keyframes(jump_run):
     """The written object poses follow what bundle adjustment did to the object's keyframes:
     all of them when all moved alike; one rest of the object as a whole when one of its
     keyframes moved; frames nearer other keyframes not at all."""
-    from scipy.spatial.transform import Rotation
 
     reconstructor = jump_run.reconstructor
     object_map = reconstructor.object_maps[0]
@@ -167,7 +165,6 @@ def test_object_trajectory_moves_with_its_bundle_adjusted_keyframes(jump_run):
 def test_object_trajectory_averages_the_corrections_of_one_rest(jump_run):
     """Within one rest of the object (one world pose as tracked) holding several keyframes,
     the written poses move by the mean of what bundle adjustment did to those keyframes."""
-    from scipy.spatial.transform import Rotation
 
     reconstructor = jump_run.reconstructor
     object_map = reconstructor.object_maps[0]
@@ -201,7 +198,6 @@ def test_object_trajectory_counts_only_adjustments_made_after_a_frame_was_tracke
     """A frame whose rest holds no keyframe is corrected by what bundle adjustment did, after
     the frame was tracked, to the map's latest keyframe of that time: an adjustment from
     before (which its registration already saw) does not count twice."""
-    from scipy.spatial.transform import Rotation
 
     reconstructor = jump_run.reconstructor
     object_map = reconstructor.object_maps[0]
@@ -500,7 +496,6 @@ def _object_map(object_id, positions, descriptors):
 def test_two_maps_of_one_object_merge_into_the_first_frame():
     """Merging map 2 into map 1 at ``T_1_2`` (map 1 <- map 2) brings its landmarks, its
     keyframe (both poses) and its frames' trajectory anchors into map 1's frame."""
-    from scipy.spatial.transform import Rotation
 
     from jsr.pipeline.map_merging import merge_object_maps
 
@@ -1044,7 +1039,6 @@ def test_motion_with_few_agreeing_outliers_is_confirmed_by_a_recent_frame(few_ou
 def test_turn_is_confirmed_by_the_same_turn_in_a_recent_frame():
     """The remembered turn must move the region to the same old place by the same rotation,
     at most detection.in_place_turn_memory_frames frames earlier."""
-    from scipy.spatial.transform import Rotation
 
     config = load_config(None)
     memory = DetectionMemory()
