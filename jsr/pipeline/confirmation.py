@@ -262,18 +262,19 @@ def _rigid(state: SceneState, ctx: FrameContext, outcome: ObjectTrackingResult) 
     rate = float(np.clip(mismatch_rate, 0.05, 0.95))
     outliers = result.num_matches - result.num_inliers
     chance = float(binom.sf(outliers - 1, result.num_matches, rate))
+    few_outliers = chance >= state.config.detection.significance
     object_map = outcome.object_map
     if outcome.at_rest:
         logger.debug("frame %d: candidate %d at rest: %d of %d matches outliers (mismatch rate %.2f: chance %.3g)",
                      ctx.frame.index, object_map.object_id, outliers, result.num_matches, rate, chance)
-        return chance >= state.config.detection.significance
+        return few_outliers
     misfit, seen = depth_misfit(state, ctx, result.transformation,
                                 object_map.points.positions[object_map.points.active])
     bound = chi2.isf(state.config.detection.confirm_significance, max(seen, 1))
     logger.debug("frame %d: candidate %d: %d of %d matches outliers (mismatch rate %.2f: chance %.3g); its landmarks' "
                  "depth misfit %.1f over %d (bound %.1f)", ctx.frame.index, object_map.object_id, outliers,
                  result.num_matches, rate, chance, misfit, seen, bound)
-    return chance >= state.config.detection.significance and misfit <= bound
+    return few_outliers and misfit <= bound
 
 
 def _decide(state: SceneState, ctx: FrameContext, object_map: ObjectMap, outcome: ObjectTrackingResult | None) -> None:
