@@ -209,6 +209,30 @@ def test_seen_through_share_finds_a_model_placed_in_seen_empty_space():
                               3.0) is None  # no depth where the model falls: nothing to check
 
 
+def test_seen_through_share_leaves_out_a_face_seen_edge_on():
+    """A face seen nearly edge-on (83-85 degrees from face-on) returns no depth to a sensor,
+    which measures the wall behind it there: at the right placement it is not counted as seen
+    through (the share was 0.20 when it counted), and a placement 10 cm nearer still is."""
+    from jsr.config import load_config
+    from jsr.geometry import look_at
+    from jsr.pipeline.surface_evidence import seen_through_share
+
+    noise = load_config(None).noise
+    points, colors = _box_faces()
+    model = build_model([(_box_camera(), _view(points, colors, _box_camera()))], VOXEL)
+    camera = look_at(np.array([0.2, 0.45, 0.6]), np.zeros(3))  # the +x face 83-85 degrees from face-on
+    measured_faces = points[:, 0] < 0.119  # the depth sensor returns the +y and +z faces only
+    view = _depth_view(_view(points[measured_faces], colors[measured_faces], camera).points.astype(float),
+                       wall_depth=1.6)
+
+    def share(T_model_camera):
+        return seen_through_share(model, T_model_camera, view, _Intrinsics(), noise, 0.03, 3.0)
+
+    assert share(camera) < load_config(None).objects.shape_max_seen_through
+    towards = make_transform(np.eye(3), [0.0, 0.0, -0.1])
+    assert share(camera @ np.linalg.inv(towards)) > 0.9
+
+
 def _textured(points, seed=1):
     """Blotchy colours ``(N, 3)`` uint8 for any surface ``points`` ``(N, 3)``: grey, with
     dark blotches of 3 cm around random centres."""

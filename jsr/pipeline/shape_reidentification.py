@@ -283,7 +283,8 @@ def shape_alone(state: SceneState, object_map: ObjectMap, region: SurfaceModel, 
     - leave the model where this view (``view``, the frame's depth) saw it or something in
       front of it: of the model's points that face the camera and fall where the frame
       measured depth, at most ``objects.shape_max_seen_through`` seen through
-      (:func:`~jsr.pipeline.surface_evidence.seen_through_share`). Measured: right fits 0-0.4%;
+      (:func:`~jsr.pipeline.surface_evidence.seen_through_share`, which leaves out faces seen
+      nearly edge-on). Measured: right fits 0-0.7%;
       wrong fits on kitchen_box120 10-90%. A fit that the view sees
       through is no rival either: the object cannot be there;
     - line up the object's texture (:func:`~jsr.pipeline.surface_evidence.texture_agreement`) at
