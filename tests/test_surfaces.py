@@ -183,20 +183,24 @@ def _box_scene():
             _depth_view(seen.points.astype(float), wall_depth=1.6))
 
 
-def test_seen_through_share_finds_a_model_placed_in_seen_empty_space():
-    """A right placement puts the model on the surface the view measured; one 10 cm towards
-    the camera, or 15 cm aside against a wall behind the box, puts it in space seen empty."""
+def _seen_through_in(view, model):
+    """A function of a placement ``T_model_camera`` of ``model``: its
+    :func:`~jsr.pipeline.surface_evidence.seen_through_share` in ``view`` (margins 3 cm and 3
+    sigmas, None when too little can be checked)."""
     from jsr.config import load_config
     from jsr.pipeline.surface_evidence import seen_through_share
 
     noise = load_config(None).noise
+    return lambda T_model_camera: seen_through_share(model, T_model_camera, view, _Intrinsics(), noise, 0.03, 3.0)
+
+
+def test_seen_through_share_finds_a_model_placed_in_seen_empty_space():
+    """A right placement puts the model on the surface the view measured; one 10 cm towards
+    the camera, or 15 cm aside against a wall behind the box, puts it in space seen empty."""
     points, colors = _box_faces()
     camera = _box_camera()
     model = build_model([(camera, _view(points, colors, camera))], VOXEL)
-    view = _depth_view(_view(points, colors, camera).points.astype(float), wall_depth=1.6)
-
-    def share(T_model_camera):
-        return seen_through_share(model, T_model_camera, view, _Intrinsics(), noise, 0.03, 3.0)
+    share = _seen_through_in(_depth_view(_view(points, colors, camera).points.astype(float), wall_depth=1.6), model)
 
     assert share(camera) < 0.01
     towards = make_transform(np.eye(3), [0.0, 0.0, -0.1])  # in the camera frame: 10 cm nearer
@@ -205,8 +209,8 @@ def test_seen_through_share_finds_a_model_placed_in_seen_empty_space():
     assert share(camera @ np.linalg.inv(aside)) > 0.3
     behind = make_transform(np.eye(3), [0.0, 0.0, 0.1])  # occluded by the box: not seen through
     assert share(camera @ np.linalg.inv(behind)) < 0.01
-    assert seen_through_share(model, camera, _depth_view(np.zeros((0, 3))), _Intrinsics(), noise, 0.03,
-                              3.0) is None  # no depth where the model falls: nothing to check
+    # no depth where the model falls: nothing to check
+    assert _seen_through_in(_depth_view(np.zeros((0, 3))), model)(camera) is None
 
 
 def test_seen_through_share_leaves_out_a_face_seen_edge_on():
@@ -215,18 +219,14 @@ def test_seen_through_share_leaves_out_a_face_seen_edge_on():
     through (the share was 0.20 when it counted), and a placement 10 cm nearer still is."""
     from jsr.config import load_config
     from jsr.geometry import look_at
-    from jsr.pipeline.surface_evidence import seen_through_share
 
-    noise = load_config(None).noise
     points, colors = _box_faces()
     model = build_model([(_box_camera(), _view(points, colors, _box_camera()))], VOXEL)
     camera = look_at(np.array([0.2, 0.45, 0.6]), np.zeros(3))  # the +x face 83-85 degrees from face-on
     measured_faces = points[:, 0] < 0.119  # the depth sensor returns the +y and +z faces only
     view = _depth_view(_view(points[measured_faces], colors[measured_faces], camera).points.astype(float),
                        wall_depth=1.6)
-
-    def share(T_model_camera):
-        return seen_through_share(model, T_model_camera, view, _Intrinsics(), noise, 0.03, 3.0)
+    share = _seen_through_in(view, model)
 
     assert share(camera) < load_config(None).objects.shape_max_seen_through
     towards = make_transform(np.eye(3), [0.0, 0.0, -0.1])
