@@ -261,10 +261,10 @@ def seen_through_share(model: SurfaceModel, T_model_camera: np.ndarray, view, in
 
     Why not at grazing angles: a depth sensor returns little of a face seen nearly edge-on, and
     what it returns there is the surface behind. Set 3's redkitchen_s4_two_sim, frame 68: a box
-    that had jumped, placed within 0.1 cm and 1.5 degrees by its surface fit (the ground truth
-    itself: 7.8%), was seen through at 5.8% of its points, 54 of those 60 on a face seen 80-90
-    degrees from face-on; below 75 degrees 0.7%, while the wrong fits that had been seen through
-    stayed so (9-99%)."""
+    that had jumped, placed within 0.1 cm and 1.5 degrees by its surface fit, was seen through
+    at 5.8% of its points (placed at the ground truth, 7.8%), 54 of those 60 on a face seen
+    80-90 degrees from face-on; below 75 degrees 0.7%, while the wrong fits that had been seen
+    through stayed so (9-99%)."""
     T_camera_model = np.linalg.inv(T_model_camera)
     points = transform_points(T_camera_model, model.points)
     normals = model.normals @ T_camera_model[:3, :3].T
